@@ -1,0 +1,35 @@
+# lightprobe: the two commands a newcomer needs are `make run` and `make test`.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+HOST ?= 127.0.0.1
+PORT ?= 8080
+SCENE ?= flashlight
+
+.PHONY: run test lint bench clean venv
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test,relight]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/lightprobe serve --camera sim --scene $(SCENE) --host $(HOST) --port $(PORT)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check device drivers sim calibration hostlink bench tests
+	$(BIN)/mypy device drivers sim calibration hostlink
+
+bench: $(STAMP)
+	$(BIN)/lightprobe bench pipeline --out bench/results
+	$(BIN)/lightprobe bench samplers --out bench/results
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

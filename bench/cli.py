@@ -1,0 +1,54 @@
+"""``lightprobe bench NAME [--out DIR]``: run a benchmark module ``bench.NAME``.
+
+Each benchmark module exposes ``run(out_dir: Path, quick: bool) -> dict`` which writes
+``NAME.json`` and PNG plots into ``out_dir`` and returns the JSON it wrote.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+BENCHMARKS = {
+    "pipeline": "per-stage time and fused-radiance error on the simulated probe",
+    "samplers": "run time against error for every sampler on the shared maps",
+    "service": "WebSocket load: pipeline fps and memory with many clients",
+    "relight": "cut relighting: error and frame time",
+}
+
+
+def machine_info() -> dict[str, object]:
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+            "machine": platform.machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="lightprobe bench", description="Run a benchmark.")
+    p.add_argument("name", choices=sorted(BENCHMARKS), help="; ".join(f"{k}: {v}" for k, v in BENCHMARKS.items()))
+    p.add_argument("--out", type=Path, default=Path("bench/results"), help="output folder (default bench/results)")
+    p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
+    a = p.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    mod = importlib.import_module(f"bench.{a.name}")
+    result = mod.run(a.out, quick=a.quick)
+    print(json.dumps({"machine": machine_info(), **result.get("summary", {})}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

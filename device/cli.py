@@ -1,0 +1,69 @@
+"""The ``lightprobe`` command line: a thin dispatcher to each command's own module.
+
+Each command lives beside the code it drives and exposes ``main(argv) -> int``; importing this
+module imports none of them, so ``lightprobe --help`` is instant and a broken optional backend
+cannot break unrelated commands. Exit codes (CONVENTIONS.md): 0 success, 2 bad arguments or bad
+input (one line naming the file or parameter), 1 other failures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+__all__ = ["main"]
+
+# command -> (module, one-line help). The module's main(argv) parses its own options.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "serve": ("device.service.cli", "run the probe service"),
+    "token": ("device.service.cli_token", "print the API bearer token"),
+    "fuse": ("device.hdr.cli", "fuse an exposure stack into a linear HDR image"),
+    "sample": ("device.sampling.cli", "sample an equirect map into a light set"),
+    "run-pipeline": ("device.run", "run the capture pipeline on a camera and print per-frame stats"),
+    "calibrate": ("calibration.cli", "calibration routines (fisheye, response, photometric, ...)"),
+    "cameras": ("drivers.cli", "list attached cameras and their capabilities"),
+    "discover": ("hostlink.cli", "list probes on the LAN"),
+    "relight": ("hostlink.relight.cli", "relight a 3D scene with a probe's lights"),
+    "bench": ("bench.cli", "run a benchmark, write JSON and PNG plots"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(
+        prog="lightprobe",
+        description="Live HDR light probe: capture, fuse, project and sample lighting.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="commands:\n" + "\n".join(f"  {k:<13} {v[1]}" for k, v in COMMANDS.items())
+        + "\n\nRun 'lightprobe COMMAND --help' for a command's options.",
+    )
+    parser.add_argument("command", choices=sorted(COMMANDS), metavar="COMMAND")
+    parser.add_argument("args", nargs=argparse.REMAINDER)
+    ns = parser.parse_args(argv[:1])
+    module_name, _ = COMMANDS[ns.command]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name and module_name.startswith(e.name):
+            print(f"lightprobe: command {ns.command!r} is not available in this build", file=sys.stderr)
+            return 1
+        raise
+    return int(module.main(argv[1:]) or 0)
+
+
+def run_command(fn, *args, **kwargs) -> int:  # type: ignore[no-untyped-def]
+    """Run a command body, mapping InputError to exit 2 and a one-line message."""
+    from device.errors import InputError
+
+    try:
+        return int(fn(*args, **kwargs) or 0)
+    except InputError as e:
+        print(f"lightprobe: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

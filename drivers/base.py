@@ -1,0 +1,223 @@
+"""The camera protocol every backend implements: types, errors and the async interface.
+
+Backends (``drivers.v4l2``, ``drivers.libcamera``, ``drivers.uvc``) and the simulator
+(``sim.camera``) implement :class:`Camera`; the burst logic in ``device.burst`` only talks to this
+protocol, so the whole service runs unchanged on any of them.
+
+Units at this boundary are SI: exposure times in seconds (drivers convert from 100 us units or
+microseconds), timestamps in seconds of CLOCK_MONOTONIC. Importing this module does nothing.
+
+Exposure latency. Real sensors apply a new exposure a few frames after it is requested. Frames
+carry the exposure the *sensor* used: when the backend reads it from per-frame metadata
+(libcamera, the simulator) ``FrameMetadata.exposure_verified`` is True; when it can only infer it
+(V4L2 has no per-frame exposure), the backend sets ``exposure_verified=False`` and reports the
+requested value only once its settling rule (``Capabilities.control_latency_frames`` frames after
+the request) says it has landed. ``device.burst`` accepts a frame only when its metadata shows the
+requested exposure.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Self
+
+import numpy as np
+
+__all__ = [
+    "Camera",
+    "CameraBusy",
+    "CameraDisconnected",
+    "CameraError",
+    "CameraUnavailable",
+    "Capabilities",
+    "CaptureTimeout",
+    "ControlNotSupported",
+    "ControlOutOfRange",
+    "Controls",
+    "Frame",
+    "FrameMetadata",
+    "Mode",
+    "PixelFormat",
+]
+
+
+# ---- Errors -------------------------------------------------------------------------------------
+class CameraError(Exception):
+    """Base class of camera errors. ``device`` names the camera (path, id or 'sim')."""
+
+    def __init__(self, message: str, *, device: str | None = None) -> None:
+        super().__init__(message)
+        self.device = device
+
+
+class CameraUnavailable(CameraError):
+    """The camera does not exist or cannot be opened (missing device node, no permission)."""
+
+
+class CameraBusy(CameraUnavailable):
+    """Another process holds the camera (EBUSY, or a USB interface claimed by a kernel driver)."""
+
+
+class CameraDisconnected(CameraError):
+    """The camera went away while open (unplugged, ENODEV). Reopen to continue."""
+
+
+class ControlOutOfRange(CameraError, ValueError):
+    """A requested control value is outside the range the camera reports."""
+
+    def __init__(self, control: str, value: float, lo: float, hi: float, *, device: str | None = None) -> None:
+        super().__init__(f"{control}={value!r} is outside [{lo!r}, {hi!r}]", device=device)
+        self.control, self.value, self.lo, self.hi = control, value, lo, hi
+
+
+class ControlNotSupported(CameraError):
+    """The camera has no such control (V4L2 EINVAL on the id, UVC STALL)."""
+
+
+class CaptureTimeout(CameraError, TimeoutError):
+    """No frame arrived within the timeout."""
+
+
+# ---- Types --------------------------------------------------------------------------------------
+class PixelFormat(enum.StrEnum):
+    """What a frame's pixels are. ``RGB8`` is processed (non-linear response); ``RAW*`` are
+    linear sensor values, demosaiced to RGB by the backend, still with the black level in."""
+
+    RGB8 = "rgb8"
+    RAW10 = "raw10"
+    RAW12 = "raw12"
+    RAW16 = "raw16"
+
+    @property
+    def is_raw(self) -> bool:
+        return self is not PixelFormat.RGB8
+
+    @property
+    def bit_depth(self) -> int:
+        return {"rgb8": 8, "raw10": 10, "raw12": 12, "raw16": 16}[self.value]
+
+
+@dataclass(frozen=True, slots=True)
+class Mode:
+    """A sensor mode: output size, pixel format and the fastest frame rate it allows."""
+
+    width: int
+    height: int
+    format: PixelFormat = PixelFormat.RGB8
+    max_fps: float = 30.0
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return (self.width, self.height)
+
+
+@dataclass(frozen=True, slots=True)
+class Capabilities:
+    """What a camera can do. Ranges are inclusive; exposure in seconds, gain as a factor."""
+
+    exposure_range: tuple[float, float]
+    gain_range: tuple[float, float]
+    modes: tuple[Mode, ...]
+    # True when every frame reports the exposure the sensor actually used.
+    has_frame_metadata: bool
+    # Frames between a control request and the first frame that shows it (worst case).
+    control_latency_frames: int
+    model: str = ""
+    serial: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Controls:
+    """Control values to apply; ``None`` leaves a control unchanged. Exposure is always manual."""
+
+    exposure_s: float | None = None
+    gain: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class FrameMetadata:
+    exposure_s: float  # exposure the sensor used (or the settled request, see module docs)
+    gain: float
+    timestamp_s: float  # sensor timestamp, CLOCK_MONOTONIC seconds
+    sequence: int  # increases by one per sensor frame; gaps mean dropped frames
+    exposure_verified: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One image: ``data`` is (H, W, 3) uint8 for RGB8, uint16 for RAW formats."""
+
+    data: np.ndarray
+    meta: FrameMetadata
+    format: PixelFormat
+    black_level: float = 0.0  # in pixel units, RAW only
+    white_level: float = 255.0  # largest value the sensor can report (saturation)
+    extra: dict[str, object] = field(default_factory=dict)
+
+
+# ---- The protocol -------------------------------------------------------------------------------
+class Camera(abc.ABC):
+    """An exposure-controllable camera.
+
+    Lifecycle: ``open()`` (or ``async with``), ``set_mode()``, then ``apply()`` and ``capture()``
+    in any order, ``close()``. ``capture()`` returns the next frame the sensor delivers, in order;
+    after ``apply()`` the first frames may still carry the old exposure: check ``frame.meta``.
+    Blocking work (ioctls, USB transfers) must not run on the event loop.
+    """
+
+    name: str = "camera"
+
+    @abc.abstractmethod
+    async def open(self) -> None:
+        """Open the device. Raises CameraUnavailable / CameraBusy."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Release the device. Safe to call twice and after a disconnect."""
+
+    @property
+    @abc.abstractmethod
+    def capabilities(self) -> Capabilities:
+        """Valid after ``open()``."""
+
+    @property
+    @abc.abstractmethod
+    def mode(self) -> Mode:
+        """The current mode."""
+
+    @abc.abstractmethod
+    async def set_mode(self, mode: Mode) -> None:
+        """Switch sensor mode; ``mode`` must be one of ``capabilities.modes``."""
+
+    @abc.abstractmethod
+    async def apply(self, controls: Controls) -> None:
+        """Request control values. Raises ControlOutOfRange before touching the device."""
+
+    @abc.abstractmethod
+    async def capture(self, timeout: float = 1.0) -> Frame:
+        """The next frame. Raises CaptureTimeout, CameraDisconnected."""
+
+    # -- helpers shared by backends --
+    def check_controls(self, controls: Controls) -> None:
+        """Raise ControlOutOfRange for values outside the capabilities."""
+        caps = self.capabilities
+        if controls.exposure_s is not None:
+            lo, hi = caps.exposure_range
+            if not (lo <= controls.exposure_s <= hi):
+                raise ControlOutOfRange("exposure_s", controls.exposure_s, lo, hi, device=self.name)
+        if controls.gain is not None:
+            lo, hi = caps.gain_range
+            if not (lo <= controls.gain <= hi):
+                raise ControlOutOfRange("gain", controls.gain, lo, hi, device=self.name)
+
+    async def __aenter__(self) -> Self:
+        await self.open()
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.close()

@@ -1,0 +1,38 @@
+"""Shared fixtures. Real data is read from ../shared/data (never copied into the repository)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED_DATA = Path(os.environ.get("LIGHTPROBE_SHARED_DATA", ROOT.parent / "shared" / "data"))
+ENVMAP_NAMES = [
+    "studio_small_03_1k.hdr",
+    "rooitou_park_1k.hdr",
+    "potsdamer_platz_1k.hdr",
+    "lebombo_1k.hdr",
+    "dikhololo_night_1k.hdr",
+    "interior_blender.exr",
+]
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.fail(f"shared data not found at {SHARED_DATA}: CI clones ../shared beside the repo")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def envmap_paths(shared_data: Path) -> dict[str, Path]:
+    return {name: shared_data / "envmaps" / name for name in ENVMAP_NAMES}
+
+
+@pytest.fixture(scope="session")
+def artifacts_dir() -> Path:
+    d = ROOT / "test-artifacts"
+    d.mkdir(exist_ok=True)
+    return d
