@@ -84,3 +84,34 @@ def test_bad_image_names_the_file(tmp_path):
         read_hdr_image(bad)
     with pytest.raises(InputError, match="missing.hdr"):
         read_hdr_image(tmp_path / "missing.hdr")
+
+
+@pytest.mark.parametrize(("height", "nside"), [(90, 16), (256, 64), (512, 64), (16, 64)])
+def test_equirect_to_healpix_conserves_energy_exactly(height, nside):
+    rng = np.random.default_rng(height)
+    img = (rng.random((height, 2 * height, 3)) ** 8 * 1e3).astype(np.float32)
+    img[height // 3, height // 2] = 1e6  # a sun in one pixel
+    hp = H.equirect_to_healpix(img, nside)
+    assert hp.shape == (H.npix(nside), 3)
+    assert hp.dtype == np.float32
+    total = hp.astype(np.float64).sum(axis=0) * H.pixel_solid_angle(nside)
+    if height >= 90:  # fine enough that no HEALPix pixel is a hole: exact
+        np.testing.assert_allclose(total, S.equirect_integral(img), rtol=1e-6)
+    back = H.healpix_to_equirect(hp, 64)
+    np.testing.assert_allclose(S.equirect_integral(back), total, rtol=1e-6)
+
+
+def test_equirect_to_healpix_constant_map_stays_near_constant():
+    hp = H.equirect_to_healpix(np.ones((256, 512, 3), np.float32), 64)
+    assert np.all(np.isfinite(hp))
+    assert abs(hp.mean() - 1) < 1e-6
+    assert hp.std() < 0.03  # boundary quantisation texture, documented
+
+
+def test_healpix_sun_lands_in_its_pixel():
+    img = np.zeros((256, 512, 3), np.float32)
+    img[40, 100] = 1.0
+    hp = H.equirect_to_healpix(img, 16)
+    theta = np.pi * 40.5 / 256
+    phi = 2 * np.pi * 100.5 / 512
+    assert np.argmax(hp[:, 0]) == H.ang2pix_nest(16, theta, phi)
