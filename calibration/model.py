@@ -26,6 +26,7 @@ from device.errors import InputError
 __all__ = [
     "Calibration",
     "FisheyeModel",
+    "LensMask",
     "Photometric",
     "Pose",
     "Response",
@@ -236,12 +237,33 @@ class Pose:
         return cls(R, _arr(d.get("position"), (3,), "pose.position"))
 
 
+@dataclass(frozen=True)
+class LensMask:
+    """Valid image circle: pixels farther than ``radius_px`` from ``center`` (the housing ring,
+    frame reflections) are masked and filled before sampling (``calibration.mask``)."""
+
+    center: tuple[float, float]
+    radius_px: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"center": list(map(float, self.center)), "radius_px": float(self.radius_px)}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> LensMask:
+        c = _arr(d.get("center"), (2,), "mask.center")
+        r = float(_arr(d.get("radius_px"), (), "mask.radius_px"))
+        if r <= 0:
+            raise InputError("mask.radius_px must be positive", param="mask.radius_px")
+        return cls((float(c[0]), float(c[1])), r)
+
+
 _SECTIONS: dict[str, Any] = {
     "fisheye": FisheyeModel,
     "response": Response,
     "vignetting": Vignetting,
     "photometric": Photometric,
     "pose": Pose,
+    "mask": LensMask,
 }
 
 
@@ -256,6 +278,7 @@ class Calibration:
     pose: Pose | None = None
     created: str = ""
     source: str = ""  # "truth" for the simulator's ground truth, else how it was made
+    mask: LensMask | None = None  # appended last: positional construction stays compatible
 
     VERSION = 1
 

@@ -40,6 +40,7 @@ def directions_from_angles(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """Unit directions (..., 3) from polar angle ``theta`` (from +y) and azimuth ``phi``."""
     theta = np.asarray(theta, dtype=np.float64)
     phi = np.asarray(phi, dtype=np.float64)
+    theta, phi = np.broadcast_arrays(theta, phi)
     st = np.sin(theta)
     return np.stack([st * np.sin(phi), np.cos(theta), -st * np.cos(phi)], axis=-1)
 

@@ -1,0 +1,23 @@
+"""The simulated lightprobe: a fisheye camera with ground truth, implementing drivers.base.Camera.
+
+Public API::
+
+    from sim.camera import SimCamera          # the Camera (open/apply/capture, truth_calibration)
+    from sim.scenarios import load_scene      # "room", "flashlight", "flicker", "switch",
+                                              # "swing", "daylight", or any equirect path
+    from sim.scene import Scene, DynamicLight # radiance over the sphere, area-correct lights
+    from sim.lens import make_lens            # KB4 fisheye, vignetting, housing ring, render matrix
+    from sim.sensor import SensorModel        # shot/read noise, response curve, 8-bit / raw
+    from sim.faults import FaultPlan          # camera.faults.inject("disconnect", duration_s=0.5)
+
+Typical use::
+
+    cam = SimCamera("flashlight", seed=1)
+    async with cam:
+        await cam.apply(Controls(exposure_s=1e-3))
+        frame = await cam.capture()
+    cal = cam.truth_calibration()             # fused value x cal.photometric.scale == radiance
+    truth = cam.truth_radiance(frame.meta.timestamp_s)
+
+Importing this package does nothing (no files read, no threads).
+"""

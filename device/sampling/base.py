@@ -14,7 +14,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["LightSet", "Sampler"]
+__all__ = ["LightSet", "Sampler", "sanitize_radiance"]
 
 LIGHTSET_VERSION = 1
 
@@ -127,3 +127,26 @@ class Sampler(Protocol):
     def sample(self, equirect: np.ndarray, count: int) -> LightSet: ...
 
     def reset(self) -> None: ...
+
+
+def sanitize_radiance(equirect: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """The map every sampler actually integrates: float32 (H, W, 3), NaN/inf and negatives -> 0.
+
+    A sensor can hand over NaN (a failed merge) and lossy EXR (DWAB) carries tiny negative values;
+    radiance is non-negative, so both are set to 0 and counted. Energy conservation is stated
+    against this cleaned map. Returns ``(clean, {"nonfinite": n, "negative": m})`` (counts of
+    values, not pixels). The input is never modified.
+    """
+    a = np.asarray(equirect)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) radiance map, got shape {a.shape}")
+    a = np.array(a, dtype=np.float32, copy=True, order="C")
+    finite = np.isfinite(a)
+    n_bad = int(a.size - np.count_nonzero(finite))
+    if n_bad:
+        a[~finite] = 0.0
+    neg = a < 0
+    n_neg = int(np.count_nonzero(neg))
+    if n_neg:
+        a[neg] = 0.0
+    return a, {"nonfinite": n_bad, "negative": n_neg}

@@ -1,0 +1,343 @@
+"""``lightprobe calibrate ...``: calibration routines for technicians.
+
+Subcommands: ``fisheye`` (checkerboard photos), ``response`` (bracketed photos), ``photometric``
+(lux meter + probe map), ``vignetting`` (flat field), ``mask`` (lens frame), ``pose`` (installer
+angles or a board on the floor), ``show``, ``history`` and ``rollback`` (the state directory's
+calibration store). Results merge into ``--out`` (its other sections are kept) and, with
+``--state DIR``, are saved as a new version in the store. Exit codes per CONVENTIONS.md: bad
+input exits 2 with one line naming the files at fault.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from device.errors import InputError
+
+__all__ = ["main"]
+
+
+def _err(msg: str, param: str | None = None) -> InputError:
+    return InputError(msg, param=param)
+
+
+def _load_existing(out: Path | None) -> Any:
+    from .model import Calibration
+
+    if out is None or not out.exists():
+        return Calibration()
+    try:
+        return Calibration.from_json(json.loads(out.read_text()))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise _err(f"{out}: existing calibration is not valid JSON ({e})", str(out)) from e
+    except InputError as e:
+        raise _err(f"{out}: {e}", str(out)) from e
+
+
+def _write(args: argparse.Namespace, **sections: Any) -> None:
+    """Merge ``sections`` into --out (keeping its others) and/or save to --state."""
+    from .store import CalibrationStore, atomic_write
+
+    out = Path(args.out) if getattr(args, "out", None) else None
+    state = getattr(args, "state", None)
+    base = _load_existing(out)
+    if out is None and state:
+        res = CalibrationStore(state).load()
+        base = res.calibration or base
+    cal = base.with_(created="", **sections)
+    data = (json.dumps(cal.to_json(), indent=1) + "\n").encode()
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(out, data)
+        print(f"wrote {out} (id {cal.id})", file=sys.stderr)
+    if state:
+        v = CalibrationStore(state).save(cal)
+        print(f"saved version {v.number} ({v.id}) in {state}", file=sys.stderr)
+
+
+def _read_images(paths: list[str]) -> list[tuple[str, np.ndarray]]:
+    import cv2
+
+    out, sizes = [], {}
+    for p in paths:
+        img = cv2.imread(p, cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise _err(f"{p}: not a readable image", p)
+        out.append((p, img))
+        sizes.setdefault((img.shape[1], img.shape[0]), []).append(p)
+    if len(sizes) > 1:
+        desc = "; ".join(f"{w}x{h}: {', '.join(ps)}" for (w, h), ps in sizes.items())
+        raise _err(f"images differ in size ({desc})", "IMG")
+    return out
+
+
+def _progress() -> Any:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    console=Console(stderr=True), transient=True)
+
+
+def cmd_fisheye(args: argparse.Namespace) -> int:
+    from .fisheye import View, board_object_points, calibrate_views, detect_board, parse_board
+
+    try:
+        board = parse_board(args.board, args.square)
+    except ValueError as e:
+        raise _err(f"--board/--square: {e}", "--board") from e
+    images = _read_images(args.images)
+    views, missing = [], []
+    with _progress() as prog:
+        task = prog.add_task("detecting board", total=len(images))
+        for p, img in images:
+            c = detect_board(img, board)
+            (missing.append(p) if c is None else views.append(View(Path(p).name, c, board_object_points(board))))
+            prog.advance(task)
+    if len(views) < args.min_views:
+        raise _err(f"no {args.board} board (inner corners) found in: {', '.join(missing)} "
+                   f"({len(views)} usable views, need {args.min_views})", "IMG")
+    for p in missing:
+        print(f"warning: {p}: no {args.board} board found, skipped", file=sys.stderr)
+    size = (images[0][1].shape[1], images[0][1].shape[0])
+    try:
+        res = calibrate_views(views, size, min_views=args.min_views,
+                              progress=lambda m: print(m, file=sys.stderr))
+    except ValueError as e:
+        raise _err(f"{e}", "IMG") from e
+    from dataclasses import replace
+
+    model = replace(res.model, views_rejected=tuple(res.rejected) + tuple(Path(p).name for p in missing))
+    print(f"rms {res.rms_px:.3f} px, {len(res.used)} views used, {len(model.views_rejected)} rejected, "
+          f"fx {model.K[0, 0]:.2f} fy {model.K[1, 1]:.2f} cx {model.K[0, 2]:.2f} cy {model.K[1, 2]:.2f}, "
+          f"fov {model.fov_deg:.1f} deg, coverage {100 * res.coverage_fraction:.0f}%", file=sys.stderr)
+    _write(args, fisheye=model)
+    return 0
+
+
+def cmd_response(args: argparse.Namespace) -> int:
+    from .response import response_from_stack
+
+    if len(args.times) != len(args.images):
+        raise _err(f"--times has {len(args.times)} values for {len(args.images)} images", "--times")
+    imgs = [img for _, img in _read_images(args.images)]
+    if any(i.dtype != np.uint8 or i.ndim != 3 for i in imgs):
+        raise _err("response needs 8-bit RGB images: " + ", ".join(p for p, i in zip(args.images, imgs, strict=True)
+                                                                     if i.dtype != np.uint8 or i.ndim != 3), "IMG")
+    rgb = [np.ascontiguousarray(i[..., ::-1]) for i in imgs]
+    try:
+        resp = response_from_stack(rgb, args.times, method=args.method)
+    except ValueError as e:
+        raise _err(f"{', '.join(args.images)}: {e}", "IMG") from e
+    _write(args, response=resp)
+    return 0
+
+
+def cmd_photometric(args: argparse.Namespace) -> int:
+    from device.imageio import read_hdr_image
+    from drivers.t10a import T10A, T10AError
+
+    from .photometric import lux_statistics, photometric_scale
+
+    eq = read_hdr_image(args.map)
+    if args.lux is not None:
+        values = list(args.lux)
+    else:
+        try:
+            with T10A(args.port, timeout=args.timeout) as meter:
+                values = meter.read_many(args.readings, interval=args.interval)
+        except T10AError as e:
+            print(f"lightprobe: error: lux meter: {e}", file=sys.stderr)
+            return 1
+    stats = lux_statistics(values)
+    try:
+        phot = photometric_scale(stats.mean, eq)
+    except ValueError as e:
+        raise _err(f"{args.map}: {e}", args.map) from e
+    print(json.dumps({"scale": phot.scale, "unit": phot.unit, "lux": stats.to_json()}), file=sys.stderr)
+    _write(args, photometric=phot)
+    return 0
+
+
+def cmd_vignetting(args: argparse.Namespace) -> int:
+    from device.imageio import read_hdr_image
+
+    from .vignetting import vignetting_from_flat_field
+
+    img = read_hdr_image(args.flat)
+    h, w = img.shape[:2]
+    existing = _load_existing(Path(args.out) if args.out else None)
+    if args.center:
+        center = (args.center[0], args.center[1])
+    elif existing.fisheye is not None:
+        center = (float(existing.fisheye.K[0, 2]), float(existing.fisheye.K[1, 2]))
+    else:
+        center = ((w - 1) / 2, (h - 1) / 2)
+    radius = args.radius or (existing.mask.radius_px if existing.mask else min(w, h) / 2)
+    try:
+        vig = vignetting_from_flat_field(img, center, radius)
+    except ValueError as e:
+        raise _err(f"{args.flat}: {e}", args.flat) from e
+    _write(args, vignetting=vig)
+    return 0
+
+
+def cmd_mask(args: argparse.Namespace) -> int:
+    from device.imageio import read_hdr_image
+
+    from .mask import find_mask
+
+    img = read_hdr_image(args.image)
+    h, w = img.shape[:2]
+    center = tuple(args.center) if args.center else ((w - 1) / 2, (h - 1) / 2)
+    try:
+        m = find_mask(img, center, threshold=args.threshold, margin_px=args.margin)
+    except ValueError as e:
+        raise _err(f"{args.image}: {e}", args.image) from e
+    _write(args, mask=m)
+    return 0
+
+
+def cmd_pose(args: argparse.Namespace) -> int:
+    from .pose import pose_from_angles
+
+    try:
+        pose = pose_from_angles(args.heading, args.tilt, args.tilt_azimuth, tuple(args.position))
+    except ValueError as e:
+        raise _err(str(e), "--heading") from e
+    _write(args, pose=pose)
+    return 0
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from .store import CalibrationStore
+
+    if args.state:
+        res = CalibrationStore(args.state).load()
+        for e in res.errors:
+            print(f"warning: {e}", file=sys.stderr)
+        if res.calibration is None:
+            raise _err(f"{args.state}: no valid calibration", "--state")
+        cal = res.calibration
+    elif args.file:
+        cal = _load_existing(Path(args.file))
+        if not Path(args.file).exists():
+            raise _err(f"{args.file}: no such file", args.file)
+    else:
+        raise _err("give CALIB.json or --state DIR", "file")
+    print(json.dumps(cal.to_json(), indent=1))
+    return 0
+
+
+def cmd_history(args: argparse.Namespace) -> int:
+    from .store import CalibrationStore, CorruptCalibration
+
+    store = CalibrationStore(args.state)
+    try:
+        cur = store.current_version().number
+    except CorruptCalibration:
+        cur = None
+    for v in store.versions():
+        try:
+            store.read_version(v)
+            state = "ok"
+        except CorruptCalibration as e:
+            state = f"corrupt: {e}"
+        print(f"{'*' if v.number == cur else ' '} {v.number:6d} {v.id} {state}")
+    return 0
+
+
+def cmd_rollback(args: argparse.Namespace) -> int:
+    from .store import CalibrationStore
+
+    v = CalibrationStore(args.state).rollback(args.to)
+    print(f"current calibration is now version {v.number} ({v.id})", file=sys.stderr)
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lightprobe calibrate", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def out_opts(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--out", help="calibration JSON to write (merged if it exists)")
+        sp.add_argument("--state", help="state directory: also save as a new version in its store")
+
+    f = sub.add_parser("fisheye", help="fisheye geometry from checkerboard photos")
+    f.add_argument("images", nargs="+", metavar="IMG")
+    f.add_argument("--board", required=True, help="COLSxROWS inner corners, e.g. 8x6")
+    f.add_argument("--square", type=float, required=True, help="square size in mm")
+    f.add_argument("--min-views", type=int, default=4)
+    out_opts(f)
+    f.set_defaults(fn=cmd_fisheye)
+
+    r = sub.add_parser("response", help="response curve from a bracketed static scene")
+    r.add_argument("images", nargs="+", metavar="IMG")
+    r.add_argument("--times", nargs="+", type=float, required=True, help="exposure times (s)")
+    r.add_argument("--method", choices=("debevec", "robertson"), default="debevec")
+    out_opts(r)
+    r.set_defaults(fn=cmd_response)
+
+    ph = sub.add_parser("photometric", help="photometric scale from a lux meter beside the probe")
+    ph.add_argument("--map", required=True, help="the probe's equirect map (.exr/.hdr) at the meter time")
+    src = ph.add_mutually_exclusive_group(required=True)
+    src.add_argument("--port", help="serial port of a Konica Minolta T-10A")
+    src.add_argument("--lux", type=float, nargs="+", help="readings typed in by hand (lux)")
+    ph.add_argument("--readings", type=int, default=5)
+    ph.add_argument("--interval", type=float, default=0.5)
+    ph.add_argument("--timeout", type=float, default=1.0)
+    out_opts(ph)
+    ph.set_defaults(fn=cmd_photometric)
+
+    v = sub.add_parser("vignetting", help="radial fall-off from a linear flat-field image")
+    v.add_argument("flat", metavar="FLAT")
+    v.add_argument("--center", type=float, nargs=2)
+    v.add_argument("--radius", type=float, help="image-circle radius (px)")
+    out_opts(v)
+    v.set_defaults(fn=cmd_vignetting)
+
+    m = sub.add_parser("mask", help="lens frame mask from a capture")
+    m.add_argument("image", metavar="IMG")
+    m.add_argument("--center", type=float, nargs=2)
+    m.add_argument("--threshold", type=float, default=0.25)
+    m.add_argument("--margin", type=float, default=3.0)
+    out_opts(m)
+    m.set_defaults(fn=cmd_mask)
+
+    po = sub.add_parser("pose", help="mounting pose from installer angles (degrees)")
+    po.add_argument("--heading", type=float, required=True)
+    po.add_argument("--tilt", type=float, default=0.0)
+    po.add_argument("--tilt-azimuth", type=float, default=0.0)
+    po.add_argument("--position", type=float, nargs=3, default=(0.0, 0.0, 0.0))
+    out_opts(po)
+    po.set_defaults(fn=cmd_pose)
+
+    s = sub.add_parser("show", help="print a calibration")
+    s.add_argument("file", nargs="?")
+    s.add_argument("--state")
+    s.set_defaults(fn=cmd_show)
+    h = sub.add_parser("history", help="list stored versions")
+    h.add_argument("--state", required=True)
+    h.set_defaults(fn=cmd_history)
+    rb = sub.add_parser("rollback", help="make an earlier version current")
+    rb.add_argument("--state", required=True)
+    rb.add_argument("--to", type=int)
+    rb.set_defaults(fn=cmd_rollback)
+    return p
+
+
+def main(argv: list[str]) -> int:
+    from device.cli import run_command
+
+    args = _parser().parse_args(argv)
+    if args.cmd not in ("show", "history", "rollback") and not (args.out or args.state):
+        print("lightprobe calibrate: error: give --out CALIB.json and/or --state DIR", file=sys.stderr)
+        return 2
+    return run_command(args.fn, args)

@@ -1,0 +1,326 @@
+"""Exposure bursts: adaptive bracketing (:class:`BracketPlanner`) and verified capture
+(:func:`capture_burst`).
+
+Bracketing. The planner works on *scene exposure rates*: ``s`` such that a pixel's normalised
+linear exposure (fraction of full scale) is ``e = s t g`` for exposure ``t`` and gain ``g``. From the
+previous fused frame (``FusionResult`` / radiance in fused units, divided by the response's value
+at full scale, :func:`exposure_rates`) or from one frame's histogram (:func:`rates_from_frame`)
+it takes the brightest significant level ``s_hi`` (the ``bright_pixels``-th largest
+value, so one hot pixel does not count) and the darkest significant level ``s_lo`` (the
+``dark_percentile`` of the pixels in the image circle), then
+
+    t_short = bright_target / (s_hi g)        the brightest region lands unsaturated
+    t_long  = dark_target   / (s_lo g)        the darkest region lands above the noise floor
+
+both clamped to the camera's range, and fills ``[t_short, t_long]`` with exposures ``ev_step``
+stops apart (the step grows up to ``max_ev_step`` before ``max_exposures`` is exceeded; beyond that
+the dark end gives way). A dim room then needs one exposure and a sunny window several. Pixels
+saturated in every exposure of the previous burst only give a lower bound, so the planner
+assumes them ``saturated_headroom`` x brighter, and no history means a metering sweep over the
+camera's range. (Hasinoff et al., CVPR 2010, derive noise-optimal brackets; this is a simpler
+greedy rule, checked against the simulator in tests/test_hdr_sim_accuracy.py.)
+
+Capture. :func:`capture_burst` applies each exposure and keeps reading frames until one shows
+it: with per-frame metadata, ``meta.exposure_s`` (and gain) within tolerance and
+``exposure_verified``; without it, ``capabilities.control_latency_frames`` frames are skipped and
+the frame's brightness must have stepped by the expected ratio from the previous exposure. Stale
+frames are dropped; an exposure that does not land within ``max_frames`` frames or ``timeout``
+seconds raises :class:`drivers.base.CaptureTimeout`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.model import FisheyeModel, Response
+from drivers.base import Camera, CaptureTimeout, Controls, Frame
+
+__all__ = [
+    "BracketPlanner",
+    "capture_burst",
+    "exposure_rates",
+    "field_of_view_mask",
+    "order_exposures",
+    "rates_from_frame",
+]
+
+
+def exposure_rates(radiance: np.ndarray, full_scale: float | np.ndarray = 1.0) -> np.ndarray:
+    """Per-pixel scene exposure rate ``s`` (1/s) from fused radiance: max over channels of
+    ``radiance / full_scale``, where ``full_scale`` is the response's value at saturation
+    (``Response.inverse[-1]``; 1 for RAW). float64 (H, W); non-finite -> 0."""
+    r = np.asarray(radiance, dtype=np.float64)
+    fs = np.maximum(np.asarray(full_scale, dtype=np.float64), 1e-300)
+    s = (r / fs).max(axis=-1) if r.ndim == 3 else r / fs
+    return np.where(np.isfinite(s), np.maximum(s, 0.0), 0.0)
+
+
+def rates_from_frame(frame: Frame, response: Response | None = None,
+                     sat_frac: float = 0.985) -> tuple[np.ndarray, np.ndarray]:
+    """Exposure rates (H, W) and the saturated mask of ONE frame, for planning from the previous
+    frame when no fused HDR exists: ``s = E(z) / E_fs / (t g)`` with the response (RGB8; a
+    gamma-2.2 curve if None) or the black/white levels (RAW). Saturated pixels are lower bounds."""
+    d = np.asarray(frame.data)
+    tg = max(frame.meta.exposure_s * frame.meta.gain, 1e-300)
+    if frame.format.is_raw:
+        span = max(frame.white_level - frame.black_level, 1.0)
+        e = np.clip((d.astype(np.float64) - frame.black_level) / span, 0.0, None)
+        sat = d >= frame.black_level + sat_frac * span
+    else:
+        levels = np.arange(256, dtype=np.float64) / 255.0
+        inv = (np.repeat((levels**2.2)[:, None], 3, axis=1) if response is None
+               else np.asarray(response.inverse, np.float64)[:256])
+        inv = inv / np.maximum(inv[-1], 1e-300)
+        idx = np.clip(d, 0, 255).astype(np.intp)
+        e = np.stack([inv[idx[..., c], c] for c in range(3)], axis=-1)
+        sat = d >= np.ceil(sat_frac * 255)
+    return exposure_rates(e / tg), np.asarray(sat.any(axis=-1))
+
+
+def field_of_view_mask(fisheye: FisheyeModel, margin_deg: float = 0.5) -> np.ndarray:
+    """(H, W) bool: pixels whose centre sees inside the calibrated field of view (minus
+    ``margin_deg``), i.e. the clean image circle without the housing ring and the black corners.
+    Pixels outside would pull the planner's longest exposure to the camera's maximum."""
+    w, h = fisheye.image_size
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    K = fisheye.K
+    my = (v - K[1, 2]) / K[1, 1]
+    mx = (u - K[0, 2] - K[0, 1] * my) / K[0, 0]
+    # Compare distorted radii: KB4's inverse is not unique far outside the circle (corners)
+    theta_max = np.radians(max(fisheye.fov_deg / 2 - margin_deg, 0.0))
+    return np.asarray(np.hypot(mx, my) <= float(fisheye.distort_theta(np.asarray(theta_max))))
+
+
+@dataclass
+class BracketPlanner:
+    """Chooses the exposures the scene needs (see the module docstring).
+
+    ``exposure_range`` is the camera's (seconds); ``gain`` the gain the burst will use.
+    """
+
+    exposure_range: tuple[float, float]
+    max_exposures: int = 8
+    ev_step: float = 2.0
+    max_ev_step: float = 3.0
+    gain: float = 1.0
+    bright_target: float = 0.8
+    dark_target: float = 0.25
+    bright_pixels: int = 2
+    dark_percentile: float = 2.0
+    saturated_headroom: float = 8.0
+    sweep_ev: float = 4.0
+
+    def __post_init__(self) -> None:
+        lo, hi = (float(x) for x in self.exposure_range)
+        if not (0 < lo <= hi and math.isfinite(hi)):
+            raise ValueError(f"exposure_range {self.exposure_range!r} must be 0 < lo <= hi")
+        if self.max_exposures < 1:
+            raise ValueError("max_exposures must be >= 1")
+        if not (self.ev_step > 0 and self.max_ev_step >= self.ev_step):
+            raise ValueError("need 0 < ev_step <= max_ev_step")
+        self.exposure_range = (lo, hi)
+
+    # ---- no history ------------------------------------------------------------------------
+    def metering_sweep(self) -> list[float]:
+        """Exposures spanning the camera's whole range, ``sweep_ev`` stops apart where the count
+        allows (geometric, at most ``max_exposures``, shortest and longest included)."""
+        lo, hi = self.exposure_range
+        span = math.log2(hi / lo)
+        if span <= 0:
+            return [lo]
+        n = min(self.max_exposures, max(2, math.ceil(span / self.sweep_ev) + 1))
+        return [float(x) for x in np.geomspace(lo, hi, n)]
+
+    # ---- from history ----------------------------------------------------------------------
+    def scene_levels(self, rates: np.ndarray, *, saturated: np.ndarray | None = None,
+                     mask: np.ndarray | None = None) -> tuple[float, float] | None:
+        """(s_lo, s_hi) of the significant scene range, or None when nothing is measurable."""
+        s = np.asarray(rates, dtype=np.float64)
+        if saturated is not None:
+            s = np.where(saturated, s * self.saturated_headroom, s)
+        sel = s[mask] if mask is not None else s.ravel()
+        sel = sel[np.isfinite(sel) & (sel > 0)]
+        if sel.size == 0:
+            return None
+        k = min(self.bright_pixels, sel.size)
+        s_hi = float(np.partition(sel, sel.size - k)[sel.size - k])
+        s_lo = float(np.percentile(sel, self.dark_percentile))
+        return max(min(s_lo, s_hi), 1e-300), max(s_hi, 1e-300)
+
+    def plan(self, rates: np.ndarray | None = None, *, saturated: np.ndarray | None = None,
+             mask: np.ndarray | None = None) -> list[float]:
+        """Exposures (ascending, seconds) for the next burst.
+
+        ``rates``: per-pixel exposure rates from the previous HDR frame (:func:`exposure_rates`),
+        None for a metering sweep. ``saturated``: pixels that were saturated in every exposure
+        (their rate is a lower bound). ``mask``: the pixels that count (the image circle; the
+        housing ring is black and would otherwise pull the longest exposure to the maximum).
+        """
+        if rates is None:
+            return self.metering_sweep()
+        levels = self.scene_levels(rates, saturated=saturated, mask=mask)
+        lo, hi = self.exposure_range
+        if levels is None:  # Black everywhere: the longest exposure is all we can do
+            return [hi]
+        s_lo, s_hi = levels
+        g = float(self.gain)
+        t_short = min(max(self.bright_target / (s_hi * g), lo), hi)
+        t_long = min(max(self.dark_target / (s_lo * g), t_short), hi)
+        span = math.log2(t_long / t_short)
+        n = math.ceil(span / self.ev_step - 1e-9) + 1
+        if n > self.max_exposures:
+            n = self.max_exposures
+            step = min(span / max(n - 1, 1), self.max_ev_step)
+        else:
+            step = span / max(n - 1, 1)
+        out = [t_short * 2.0 ** (step * i) for i in range(n)]
+        return [float(min(max(t, lo), hi)) for t in out]
+
+
+def order_exposures(exposures: Sequence[float], current: float | None = None) -> list[float]:
+    """Order a burst to minimise control changes: start from the end nearest the camera's current
+    exposure (log distance), so consecutive bursts alternate ascending / descending and the last
+    exposure of one burst is reused as the first of the next."""
+    asc = sorted(float(t) for t in exposures)
+    if current is None or len(asc) < 2 or current <= 0:
+        return asc
+    c = math.log(current)
+    if abs(math.log(asc[-1]) - c) < abs(math.log(asc[0]) - c):
+        return asc[::-1]
+    return asc
+
+
+# ---- capture ------------------------------------------------------------------------------------
+def _matches(frame: Frame, exposure: float, gain: float | None, rel_tol: float, abs_tol: float) -> bool:
+    m = frame.meta
+    if not math.isclose(m.exposure_s, exposure, rel_tol=rel_tol, abs_tol=abs_tol):
+        return False
+    return gain is None or math.isclose(m.gain, gain, rel_tol=rel_tol, abs_tol=1e-6)
+
+
+def _linear(frame: Frame) -> np.ndarray:
+    """A rough linear brightness per pixel (mean over channels), for the settling check only:
+    RAW minus black level, processed through an sRGB-like gamma 2.2."""
+    d = np.asarray(frame.data, dtype=np.float32)
+    if frame.format.is_raw:
+        span = max(frame.white_level - frame.black_level, 1.0)
+        return (np.clip(d.mean(axis=-1) - frame.black_level, 0, None) / span)
+    return (np.clip(d.mean(axis=-1), 0, 255) / 255.0) ** 2.2
+
+
+def brightness_ratio(frame: Frame, reference: Frame, *, min_pixels: int = 64) -> float | None:
+    """Median ratio of linear brightness between two frames over pixels well exposed in both
+    (5%..90% of full scale); None when too few such pixels exist to judge."""
+    a, b = _linear(frame), _linear(reference)
+    ok = (a > 0.05) & (a < 0.9) & (b > 0.05) & (b < 0.9)
+    if int(ok.sum()) < min_pixels:
+        # Judge from the mean when one of the two is mostly out of range
+        ma, mb = float(a.mean()), float(b.mean())
+        if mb > 1e-4 and ma > 1e-4 and (ma < 0.9 and mb < 0.9):
+            return ma / mb
+        return None
+    return float(np.median(a[ok] / b[ok]))
+
+
+def _stepped(frame: Frame, before: Frame, min_ratio: float = 1.25) -> bool:
+    """True when the brightness changed between two consecutive frames (an exposure landed)."""
+    r = brightness_ratio(frame, before)
+    return r is not None and r > 0 and abs(math.log(r)) > math.log(min_ratio)
+
+
+def _step_landed(frame: Frame, reference: Frame, expected_ratio: float) -> bool:
+    """Settling rule's brightness check: the step from the reference frame is closer (in stops) to
+    the expected exposure ratio than to no change at all."""
+    if abs(math.log(expected_ratio)) < math.log(1.05):
+        return True
+    r = brightness_ratio(frame, reference)
+    if r is None or r <= 0:
+        return True
+    lr, le = math.log(r), math.log(expected_ratio)
+    return abs(lr - le) < abs(lr)
+
+
+class _Settling:
+    """The settling rule for cameras without per-frame metadata, for one requested exposure.
+
+    Skip ``latency`` frames after the request; then, with a reference frame of known exposure
+    (the previous exposure of the burst), accept once the brightness has stepped by the expected
+    ratio; without one (first exposure of a burst, the camera's current exposure unknown), accept
+    once a brightness step between consecutive frames has been seen, or after ``2 latency + 2``
+    frames without any step (the request equalled the old exposure).
+    """
+
+    def __init__(self, latency: int, reference: Frame | None, expected_ratio: float) -> None:
+        self.latency, self.reference, self.ratio = latency, reference, expected_ratio
+        self.frames = 0
+        self.last: Frame | None = None
+        self.step_seen = False
+
+    def accept(self, frame: Frame) -> bool:
+        self.frames += 1
+        if self.last is not None and not self.step_seen:
+            self.step_seen = _stepped(frame, self.last)
+        self.last = frame
+        if self.frames <= self.latency:
+            return False
+        if self.reference is not None:
+            return _step_landed(frame, self.reference, self.ratio)
+        return self.step_seen or self.frames > 2 * self.latency + 2
+
+
+async def capture_burst(camera: Camera, exposures: Sequence[float], *, gain: float | None = None,
+                        timeout: float = 2.0,  # noqa: ASYNC109 (per-exposure budget, like Camera.capture)
+                        max_frames: int | None = None, rel_tol: float = 0.02,
+                        abs_tol: float = 2e-5) -> list[Frame]:
+    """Capture one verified frame per exposure, in the given order.
+
+    For each exposure: ``camera.apply(Controls(exposure_s, gain))``, then read frames, dropping
+    stale ones, until one shows the requested exposure (and gain): ``meta.exposure_s`` within
+    ``rel_tol`` / ``abs_tol`` of the request with ``exposure_verified``; for cameras without
+    frame metadata (``capabilities.has_frame_metadata`` False, or frames not verified), the
+    settling rule instead: skip ``control_latency_frames`` frames after the request, then require
+    the brightness to have stepped from the previous exposure's frame by the expected ratio.
+
+    Raises
+    ------
+    CaptureTimeout
+        An exposure did not land within ``max_frames`` frames (default: 2 latency + 8) or
+        ``timeout`` seconds plus ``max_frames`` times the exposure itself; also whatever ``camera.capture`` raises (CaptureTimeout,
+        CameraDisconnected) and ``camera.apply`` raises (ControlOutOfRange).
+    """
+    caps = camera.capabilities
+    latency = max(int(caps.control_latency_frames), 0)
+    limit = max_frames if max_frames is not None else 2 * latency + 8
+    loop = asyncio.get_running_loop()
+    out: list[Frame] = []
+    prev: Frame | None = None
+    for exposure in exposures:
+        t = float(exposure)
+        await camera.apply(Controls(exposure_s=t, gain=gain))
+        # The frames themselves take at least their exposure time each
+        deadline = loop.time() + timeout + limit * t
+        ratio = t / prev.meta.exposure_s if prev is not None else 1.0
+        settling = _Settling(latency, prev, ratio)
+        since_apply = 0
+        while True:
+            remaining = deadline - loop.time()
+            if remaining <= 0 or since_apply >= limit:
+                raise CaptureTimeout(
+                    f"exposure {t:.6g} s did not land within {since_apply} frames / {timeout:g} s",
+                    device=camera.name)
+            frame = await camera.capture(timeout=remaining)
+            since_apply += 1
+            verified = caps.has_frame_metadata and frame.meta.exposure_verified
+            if not verified and not settling.accept(frame):
+                continue  # Settling rule: not landed yet
+            if not _matches(frame, t, gain, rel_tol, abs_tol):
+                continue  # Stale: the sensor still runs the previous controls
+            break
+        out.append(frame)
+        prev = frame
+    return out

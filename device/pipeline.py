@@ -1,0 +1,342 @@
+"""The capture pipeline: camera -> burst -> fusion -> projection -> sampler, one frame per step.
+
+:class:`Pipeline` owns the per-probe state that lives across frames (the bracket planner's view of
+the scene, the projector's remap tables, the stateful sampler, the last published lights) and runs
+one frame per :meth:`Pipeline.step`. Capture is async (the camera protocol); every whole-frame
+numpy stage runs in a worker thread, so the event loop only ever waits.
+
+It skips what a scene does not need:
+
+- exposures: the planner brackets only the dynamic range the previous frame showed;
+- resampling: when the lighting changed less than ``PipelineConfig.change_threshold`` (relative L1
+  change of a coarse HEALPix energy map, well above sensor noise) the previous light set is
+  republished with the new frame number and ``FrameResult.skipped`` is True;
+- lights below the horizon: the equirect map's lower hemisphere follows the projector's policy
+  (``"zero"`` by default), so samplers place no lights there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from calibration.model import Calibration
+from device.errors import InputError
+from drivers.base import Camera, Frame
+
+__all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "tone_map"]
+
+# Histogram of log2 luminance (fused fisheye image, calibrated unit): 64 bins, fixed edges.
+HISTOGRAM_EDGES_LOG2 = np.linspace(-16.0, 24.0, 65)
+_PREVIEW_WIDTH = 320
+_CHANGE_NSIDE = 8
+
+
+@dataclass
+class PipelineConfig:
+    """What the pipeline does per frame. Validated on construction (InputError names the field)."""
+
+    fps: float = 10.0
+    sampler: str = "q2tree"
+    light_count: int = 256
+    max_exposures: int = 4
+    ev_step: float = 2.0
+    equirect_height: int = 256
+    nside: int = 64
+    probe_id: str = ""
+    change_threshold: float = 0.02  # relative L1 change of coarse energy that triggers resampling
+    max_skip_s: float = 5.0  # resample at least this often even if nothing changed
+    gain: float = 1.0
+    capture_timeout_s: float = 5.0  # per exposure of a burst
+    lower: str = "zero"
+    sampler_params: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        from device.sampling.registry import SAMPLERS
+
+        checks = [
+            ("fps", 0 < self.fps <= 120),
+            ("light_count", 1 <= int(self.light_count) <= 10000),
+            ("max_exposures", 1 <= int(self.max_exposures) <= 16),
+            ("ev_step", 0.25 <= self.ev_step <= 6),
+            ("equirect_height", 8 <= int(self.equirect_height) <= 2048),
+            ("nside", 1 <= int(self.nside) <= 1024 and not int(self.nside) & (int(self.nside) - 1)),
+            ("change_threshold", 0 <= self.change_threshold <= 1),
+            ("max_skip_s", self.max_skip_s >= 0),
+            ("gain", self.gain > 0),
+            ("capture_timeout_s", self.capture_timeout_s > 0),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise InputError(f"pipeline setting {name}={getattr(self, name)!r} is out of range", param=name)
+        if self.sampler not in SAMPLERS:
+            raise InputError(f"sampler {self.sampler!r} is not one of {sorted(SAMPLERS)}", param="sampler")
+
+
+@dataclass
+class FrameResult:
+    """One frame through all stages (what the service publishes)."""
+
+    frame: int
+    timestamp: float
+    equirect: np.ndarray  # (He, 2He, 3) float32, probe frame, calibrated unit
+    polar: np.ndarray  # (90, 360, 3) float32
+    healpix: np.ndarray  # (12 nside^2, 3) float32 NESTED
+    lights: Any  # device.sampling.base.LightSet
+    exposures: list[float]
+    timings: dict[str, float]
+    histogram: np.ndarray  # (64,) counts of log2 luminance, edges HISTOGRAM_EDGES_LOG2
+    preview: np.ndarray  # (h, w, 3) uint8 sRGB tone-mapped fisheye view
+    skipped: bool
+    calibration_id: str
+    unit: str
+    saturated_fraction: float = 0.0
+
+
+def tone_map(radiance: np.ndarray, valid: np.ndarray | None = None, width: int = _PREVIEW_WIDTH) -> np.ndarray:
+    """Display image: exposure keyed on the log-average luminance, Reinhard, sRGB, uint8."""
+    import cv2
+
+    img = np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    h, w = img.shape[:2]
+    if w > width:
+        img = cv2.resize(img, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+        if valid is not None:
+            valid = cv2.resize(valid.astype(np.uint8), (img.shape[1], img.shape[0]),
+                               interpolation=cv2.INTER_NEAREST).astype(bool)
+    lum = img @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    sel = lum[valid] if valid is not None else lum.ravel()
+    sel = sel[sel > 0]
+    key = float(np.exp(np.mean(np.log(sel)))) if sel.size else 1.0
+    x = img * (0.18 / max(key, 1e-30))
+    x = x / (1.0 + x)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0), 1 / 2.4) - 0.055)
+    out = np.clip(srgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if valid is not None:
+        out[~valid] = 0
+    return out
+
+
+def _coarse_energy(healpix: np.ndarray) -> np.ndarray:
+    """Luminance energy per HEALPix pixel at nside 8 (NESTED children are contiguous)."""
+    lum = np.asarray(healpix, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    n = lum.shape[0] // (12 * _CHANGE_NSIDE * _CHANGE_NSIDE)
+    return lum.reshape(-1, max(n, 1)).sum(axis=1) if n >= 1 else lum
+
+
+class Pipeline:
+    """One probe's capture pipeline. See the module docstring.
+
+    ``step()`` raises :class:`drivers.base.CameraError` on camera faults; the caller (the service's
+    frame loop) reconnects with backoff and keeps serving the last good result.
+    """
+
+    def __init__(self, camera: Camera, calibration: Calibration, config: PipelineConfig | None = None) -> None:
+        if calibration.fisheye is None or calibration.response is None:
+            raise InputError("calibration needs fisheye and response sections", param="calibration")
+        self.camera = camera
+        self.calibration = calibration
+        self.config = config or PipelineConfig()
+        self.latest: FrameResult | None = None
+        self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0, "exposures_saved": 0}
+        self._projector: Any = None
+        self._planner: Any = None
+        self._sampler: Any = None
+        self._fov_mask: np.ndarray | None = None
+        self._prev: tuple[np.ndarray, np.ndarray] | None = None  # (rates, saturated) for the planner
+        self._last_sampled: tuple[np.ndarray, float] | None = None  # (coarse energy, time)
+        self._frame = 0
+        self._current_exposure: float | None = None
+        self._started = False
+
+    # ---- lifecycle ----------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Open the camera and build the per-calibration tables (remap tables take ~1 s)."""
+        from device.burst import BracketPlanner, field_of_view_mask
+        from device.projection import Projector
+
+        await self.camera.open()
+        fe = self.calibration.fisheye
+        assert fe is not None
+        mode = self.camera.mode
+        if (mode.width, mode.height) != tuple(fe.image_size):
+            match = [m for m in self.camera.capabilities.modes if (m.width, m.height) == tuple(fe.image_size)
+                     and m.format == mode.format]
+            if not match:
+                raise InputError(f"calibration image size {fe.image_size} matches no camera mode", param="calibration")
+            await self.camera.set_mode(match[0])
+        if self._projector is None:
+            cfg = self.config
+            self._projector, self._fov_mask = await asyncio.gather(
+                asyncio.to_thread(Projector, self.calibration, equirect_height=cfg.equirect_height,
+                                  nside=cfg.nside, lower=cfg.lower),
+                asyncio.to_thread(field_of_view_mask, fe),
+            )
+        # Warm-up: the first frame after stream-on is slow on real sensors (and the simulator
+        # builds its lens tables then); do not let it count against a burst's timeout.
+        await self.camera.capture(timeout=max(30.0, self.config.capture_timeout_s))
+        caps = self.camera.capabilities
+        self._planner = BracketPlanner(caps.exposure_range, max_exposures=self.config.max_exposures,
+                                       ev_step=self.config.ev_step, gain=self.config.gain)
+        if self._sampler is None:
+            self._sampler = self._make_sampler(self.config.sampler)
+        self._started = True
+
+    async def stop(self) -> None:
+        self._started = False
+        await self.camera.close()
+
+    async def reopen(self) -> None:
+        """Close and open the camera again after a fault; keeps tables and sampler state."""
+        try:
+            await self.camera.close()
+        finally:
+            await self.start()
+
+    def reconfigure(self, config: PipelineConfig) -> None:
+        """Apply new settings; tables are rebuilt on the next ``start()`` only if geometry changed."""
+        old = self.config
+        self.config = config
+        if (config.sampler, config.sampler_params) != (old.sampler, old.sampler_params):
+            self._sampler = self._make_sampler(config.sampler)
+            self._last_sampled = None
+        if (config.equirect_height, config.nside, config.lower) != (old.equirect_height, old.nside, old.lower):
+            self._projector = None
+        if self._planner is not None:
+            self._planner.max_exposures = config.max_exposures
+            self._planner.ev_step = config.ev_step
+            self._planner.max_ev_step = max(self._planner.max_ev_step, config.ev_step)
+            self._planner.gain = config.gain
+        if config.light_count != old.light_count:
+            self._last_sampled = None
+
+    def _make_sampler(self, name: str) -> Any:
+        from device.sampling.registry import make_sampler
+
+        return make_sampler(name, **self.config.sampler_params)
+
+    # ---- one frame ----------------------------------------------------------------------------
+    async def step(self) -> FrameResult:
+        """Capture one burst and push it through every stage."""
+        from device.burst import capture_burst, order_exposures
+
+        if not self._started:
+            await self.start()
+        if self._projector is None:  # geometry changed by reconfigure()
+            await self.start()
+        t0 = time.perf_counter()
+        prev = self._prev
+        exposures = self._planner.plan(*((prev[0],) if prev else ()),
+                                       saturated=prev[1] if prev else None, mask=self._fov_mask)
+        exposures = order_exposures(exposures, self._current_exposure)
+        frames = await capture_burst(self.camera, exposures, gain=self.config.gain,
+                                     timeout=self.config.capture_timeout_s)
+        self._current_exposure = exposures[-1]
+        t1 = time.perf_counter()
+        result = await asyncio.to_thread(self._process, frames, exposures)
+        result.timings = {"capture": t1 - t0, **result.timings, "total": time.perf_counter() - t0}
+        self._update_stats(result)
+        self.latest = result
+        return result
+
+    def _process(self, frames: list[Frame], exposures: list[float]) -> FrameResult:
+        """Fusion, projection, change test and sampling (runs in a worker thread)."""
+        from device.burst import exposure_rates
+        from device.hdr.fusion import fuse_frames
+
+        cal = self.calibration
+        assert cal.response is not None
+        t0 = time.perf_counter()
+        fused = fuse_frames(frames, cal.response)
+        full_scale = cal.response.inverse[-1] if not frames[0].format.is_raw else 1.0
+        self._prev = (exposure_rates(fused.radiance, full_scale), fused.saturated)
+        t1 = time.perf_counter()
+        maps = self._projector.project(fused.radiance, valid=~fused.invalid)
+        t2 = time.perf_counter()
+        self._frame += 1
+        now = time.time()
+        coarse = _coarse_energy(maps.healpix)
+        skipped = self._unchanged(coarse, now)
+        if skipped:
+            lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False)  # type: ignore[union-attr]
+        else:
+            lights = self._sample(self._sampler, maps, self.config.light_count)
+            lights.frame, lights.timestamp = self._frame, now
+            self._last_sampled = (coarse, now)
+        t3 = time.perf_counter()
+        valid = self._fov_mask
+        scale = 1.0 if cal.photometric is None else cal.photometric.scale
+        lum = (fused.radiance[valid] * scale) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        with np.errstate(divide="ignore"):
+            hist, _ = np.histogram(np.log2(lum[lum > 0]), bins=HISTOGRAM_EDGES_LOG2)
+        preview = tone_map(fused.radiance, valid)
+        sat = float(fused.saturated[valid].mean()) if valid is not None and valid.any() else 0.0
+        return FrameResult(
+            frame=self._frame, timestamp=now, equirect=maps.equirect, polar=maps.polar, healpix=maps.healpix,
+            lights=lights, exposures=[float(f.meta.exposure_s) for f in frames],
+            timings={"fusion": t1 - t0, "projection": t2 - t1, "sampling": t3 - t2},
+            histogram=hist, preview=preview, skipped=skipped, calibration_id=cal.id,
+            unit=self.unit, saturated_fraction=sat)
+
+    def _unchanged(self, coarse: np.ndarray, now: float) -> bool:
+        if self._last_sampled is None or self.latest is None:
+            return False
+        ref, when = self._last_sampled
+        if now - when > self.config.max_skip_s:
+            return False
+        denom = float(np.abs(ref).sum())
+        if denom <= 0:
+            return float(np.abs(coarse).sum()) <= 0
+        return float(np.abs(coarse - ref).sum()) / denom < self.config.change_threshold
+
+    @property
+    def unit(self) -> str:
+        return "relative" if self.calibration.photometric is None else self.calibration.photometric.unit
+
+    def _sample(self, sampler: Any, maps: Any, count: int) -> Any:
+        if hasattr(sampler, "sample_healpix"):
+            lights = sampler.sample_healpix(maps.healpix, maps.nside, count)
+        else:
+            lights = sampler.sample(maps.equirect, count)
+        lights.probe = self.config.probe_id
+        lights.unit = self.unit
+        if self.calibration.pose is not None:
+            lights.pose = self.calibration.pose.to_json()
+        return lights
+
+    def lights_on_demand(self, method: str, count: int) -> Any:
+        """A light set from the current map with a fresh sampler (blocking: call in a thread)."""
+        if self.latest is None:
+            raise InputError("no frame captured yet", param="frame")
+        from device.sampling.registry import SAMPLERS
+
+        if method not in SAMPLERS:
+            raise InputError(f"method {method!r} is not one of {sorted(SAMPLERS)}", param="method")
+        if not 1 <= int(count) <= 10000:
+            raise InputError(f"count={count!r} must be in [1, 10000]", param="count")
+        latest = self.latest
+
+        class _Maps:
+            equirect, healpix, nside = latest.equirect, latest.healpix, self.config.nside
+
+        lights = self._sample(self._make_sampler(method), _Maps, int(count))
+        lights.frame, lights.timestamp = latest.frame, latest.timestamp
+        return lights
+
+    def _update_stats(self, r: FrameResult) -> None:
+        s = self.stats
+        s["frames"] += 1
+        s["frames_skipped"] += int(r.skipped)
+        s["exposures_saved"] += max(0, self.config.max_exposures - len(r.exposures))
+        s["last_timings"] = r.timings
+        s["exposures"] = r.exposures
+        total = r.timings.get("total", 0.0)
+        if total > 0:
+            inst = 1.0 / total
+            s["fps"] = inst if s["fps"] == 0 else 0.8 * s["fps"] + 0.2 * inst
+        s["fps"] = float(s["fps"]) if math.isfinite(s["fps"]) else 0.0

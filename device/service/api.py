@@ -1,0 +1,329 @@
+"""HTTP routes under ``/api/v1`` and the dashboard's static files.
+
+Every endpoint is documented in ``static/openapi.json`` (served at ``/api/v1/openapi.json``).
+Image encoding (EXR, HDR, JPEG) runs in worker threads and is cached per frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from aiohttp import WSMsgType, web
+
+from device.errors import InputError
+from device.service.app import STATE, ServiceState
+from device.service.config import RESTART_KEYS, SAMPLERS, save_config
+from device.service.errors import ApiError
+
+__all__ = ["add_routes", "tonemap_srgb"]
+
+log = logging.getLogger(__name__)
+
+API = "/api/v1"
+STATIC_FILES = {"index.html": "text/html", "app.js": "text/javascript", "style.css": "text/css"}
+
+
+# ---- pure helpers ---------------------------------------------------------------------------------
+def tonemap_srgb(img: np.ndarray, exposure_quantile: float = 0.9) -> np.ndarray:
+    """Tone-map a linear float image to sRGB uint8 for display.
+
+    Scales so that the ``exposure_quantile`` of luminance maps to 0.5, applies Reinhard's global
+    operator L/(1+L) on luminance (Reinhard et al. 2002, eq. 3) and the sRGB transfer curve.
+    NaN/inf and negative values (lossy EXR) are treated as 0; an all-black image stays black.
+    Float32 in, accumulations in float64 for the quantile.
+    """
+    x = np.nan_to_num(np.asarray(img, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    x = np.maximum(x, 0.0)
+    lum = x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    positive = lum[lum > 0]
+    if positive.size == 0:
+        return np.zeros(x.shape, np.uint8)
+    key = float(np.quantile(positive.astype(np.float64), exposure_quantile))
+    x *= np.float32(0.5 / max(key, 1e-30))
+    lum_s = x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    scale = 1.0 / (1.0 + lum_s)  # Reinhard eq. 3
+    y = np.clip(x * scale[..., None], 0.0, 1.0)
+    srgb = np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
+    return (srgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def _encode_jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def _encode_hdr(img: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".hdr", np.ascontiguousarray(np.asarray(img, np.float32)[..., ::-1]))
+    if not ok:
+        raise RuntimeError("Radiance HDR encoding failed")
+    return buf.tobytes()
+
+
+# ---- helpers on the state -------------------------------------------------------------------------
+def _current(st: ServiceState) -> Any:
+    r = st.runner.result
+    if r is None:
+        raise ApiError(503, "no frame yet: the pipeline is starting or the camera is reconnecting",
+                       param="camera", headers={"Retry-After": "1"})
+    return r
+
+
+async def _cached(st: ServiceState, key: str, fn: Any, *args: Any) -> bytes:
+    """Encode once per frame: the runner clears the cache on every new frame."""
+    frame = int(getattr(st.runner.result, "frame", 0))
+    hit = st.runner.cache.get(key)
+    if hit is not None and hit[0] == frame:
+        return hit[1]
+    data: bytes = await asyncio.to_thread(fn, *args)
+    st.runner.cache[key] = (frame, data)
+    return data
+
+
+def _int_param(request: web.Request, name: str, lo: int, hi: int, default: int) -> int:
+    raw = request.query.get(name)
+    if raw is None:
+        return default
+    try:
+        v = int(raw)
+    except ValueError:
+        raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {raw[:40]!r}", param=name) from None
+    if not lo <= v <= hi:
+        raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {v}", param=name)
+    return v
+
+
+def _check_query(request: web.Request, allowed: set[str]) -> None:
+    for k in request.query:
+        if k not in allowed and k not in ("access_token", "t"):  # t: a client's cache buster
+            raise InputError(f"unknown query parameter {k[:40]!r}", param=k[:40])
+
+
+# ---- handlers -------------------------------------------------------------------------------------
+async def healthz(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    fps = float(st.config.get("pipeline", "fps"))
+    ok = st.runner.progressing(max(5.0 / fps, 5.0))
+    body = {"ok": ok, "camera": st.runner.camera_state, "stale": st.runner.stale, "frames": st.runner.frames}
+    return web.json_response(body, status=200 if ok else 503)
+
+
+async def status(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    cfg = st.config
+    body = st.runner.status()
+    body.update({
+        "probe": {"id": st.probe_id, "name": cfg.get("probe", "name"), "model": cfg.get("probe", "model"),
+                  "version": st.version},
+        "sampler": cfg.get("pipeline", "sampler"),
+        "light_count": cfg.get("pipeline", "light_count"),
+        "websocket": {"clients": len(st.websockets), "dropped": st.ws_dropped,
+                      "frames_skipped": st.ws_frames_skipped},
+        "mdns": {"advertised": st.advertiser.registered_names if st.advertiser is not None else []},
+    })
+    return web.json_response(body)
+
+
+async def lights(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    _check_query(request, {"method", "count"})
+    method = request.query.get("method")
+    if method is not None and method not in SAMPLERS:
+        raise InputError(f"method must be one of {', '.join(SAMPLERS)}, got {method[:40]!r}", param="method")
+    count = _int_param(request, "count", 1, 4096, int(st.config.get("pipeline", "light_count")))
+    if method is None and "count" not in request.query:
+        if st.runner.lights_text is None:
+            _current(st)
+        return web.Response(text=st.runner.lights_text, content_type="application/json")
+    _current(st)
+    pipeline = st.runner.pipeline
+    if pipeline is None:
+        raise ApiError(503, "the camera is reconnecting: on-demand sampling needs a live pipeline",
+                       param="camera", headers={"Retry-After": "1"})
+    ls = await asyncio.to_thread(pipeline.lights_on_demand, method or st.config.get("pipeline", "sampler"), count)
+    ls.stale = st.runner.stale
+    return web.Response(text=await asyncio.to_thread(lambda: json.dumps(ls.to_json())),
+                        content_type="application/json")
+
+
+async def probe_exr(request: web.Request) -> web.Response:
+    from device.imageio import exr_bytes
+
+    st = request.app[STATE]
+    r = _current(st)
+    meta = {"unit": str(r.unit), "probe": st.probe_id, "timestamp": repr(float(r.timestamp)),
+            "calibration_id": str(r.calibration_id), "frame": str(int(r.frame)),
+            "frame_convention": "lightprobe probe frame, +y up, equirect row 0 at zenith"}
+    data = await _cached(st, "exr", exr_bytes, r.equirect, meta)
+    return web.Response(body=data, content_type="image/x-exr",
+                        headers={"Content-Disposition": 'inline; filename="probe.exr"'})
+
+
+async def probe_hdr(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    r = _current(st)
+    data = await _cached(st, "hdr", _encode_hdr, r.equirect)
+    return web.Response(body=data, content_type="image/vnd.radiance",
+                        headers={"Content-Disposition": 'inline; filename="probe.hdr"'})
+
+
+async def preview(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    _check_query(request, {"view"})
+    view = request.query.get("view", "fisheye")
+    if view not in ("fisheye", "equirect"):
+        raise InputError(f"view must be 'fisheye' or 'equirect', got {view[:40]!r}", param="view")
+    r = _current(st)
+    if view == "fisheye":
+        data = await _cached(st, "jpg-fisheye", _encode_jpeg, np.asarray(r.preview, np.uint8))
+    else:
+        data = await _cached(st, "jpg-equirect", lambda m: _encode_jpeg(tonemap_srgb(m)), r.equirect)
+    return web.Response(body=data, content_type="image/jpeg")
+
+
+async def get_config(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    return web.json_response({"config": st.config.to_json(), "path": str(st.config.path) if st.config.path else None})
+
+
+async def put_config(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    if request.content_type != "application/json":
+        raise InputError(f"Content-Type must be application/json, got {request.content_type!r}",
+                         param="Content-Type")
+    raw = await request.read()  # raises 413 past client_max_size
+    try:
+        patch = json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"body is not valid JSON: {e}", param="body") from None
+    except RecursionError:
+        raise InputError("body is nested too deeply", param="body") from None
+    async with st.config_lock:
+        new = st.config.with_patch(patch)  # validates everything before anything changes
+        if new.path is not None:
+            await asyncio.to_thread(save_config, new)
+        old, st.config = st.config, new
+        await _apply_config(st, old, new)
+    restart = sorted(f"{t}.{k}" for t, k in RESTART_KEYS if old.get(t, k) != new.get(t, k))
+    return web.json_response({"config": new.to_json(), "restart_required": restart,
+                              "saved": new.path is not None})
+
+
+async def _apply_config(st: ServiceState, old: Any, new: Any) -> None:
+    """Apply what can change live: pacing, sampler and light count (pipeline rebuild), mDNS TXT."""
+    rebuild = any(old.get("pipeline", k) != new.get("pipeline", k) for k in ("sampler", "light_count"))
+    if rebuild:
+        st.runner.request_rebuild(new)
+    else:
+        st.runner.set_config(new)
+    name_changed = old.get("probe", "name") != new.get("probe", "name")
+    if st.advertiser is not None and (name_changed or old.get("pipeline", "sampler") != new.get("pipeline", "sampler")):
+        try:
+            await st.advertiser.update(name=new.get("probe", "name"), sampler=new.get("pipeline", "sampler"))
+        except Exception as e:
+            log.warning("mdns: re-announce failed: %s", e)
+
+
+async def stream(request: web.Request) -> web.StreamResponse:
+    """WS: one light-set JSON text message per frame, newest first; slow clients skip frames
+    and are dropped when one send takes longer than ``service.ws_send_timeout``."""
+    st = request.app[STATE]
+    _check_query(request, set())
+    ws = web.WebSocketResponse(heartbeat=15.0, max_msg_size=4096, compress=False)
+    await ws.prepare(request)
+    _bound_send_buffer(request)
+    st.websockets.add(ws)
+    reader = asyncio.create_task(_drain_incoming(ws))
+    hub = st.runner.hub
+    seen = 0
+    try:
+        while not ws.closed and not hub.closed:
+            waiter = asyncio.create_task(hub.wait_newer(seen))
+            done, _ = await asyncio.wait({waiter, reader}, return_when=asyncio.FIRST_COMPLETED)
+            if waiter not in done:
+                waiter.cancel()
+                break
+            version, payload = waiter.result()
+            if payload is None:
+                break
+            if seen and version > seen + 1:
+                st.ws_frames_skipped += version - seen - 1
+            seen = version
+            try:
+                await asyncio.wait_for(ws.send_str(payload), float(st.config.get("service", "ws_send_timeout")))
+            except (TimeoutError, ConnectionResetError):
+                st.ws_dropped += 1
+                log.info("websocket client %s too slow: dropped", request.remote)
+                if request.transport is not None:
+                    request.transport.abort()
+                break
+    finally:
+        reader.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await reader
+        st.websockets.discard(ws)
+        if not ws.closed:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(), 1.0)
+    return ws
+
+
+WS_SNDBUF = 256 * 1024
+
+
+def _bound_send_buffer(request: web.Request) -> None:
+    """Cap the kernel send buffer of a stream socket (autotuning lets it grow to MBs per client),
+    so a stalled client costs at most WS_SNDBUF + the transport's 64 KiB high-water mark."""
+    import socket
+
+    sock = request.transport.get_extra_info("socket") if request.transport is not None else None
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, WS_SNDBUF)
+
+
+async def _drain_incoming(ws: web.WebSocketResponse) -> None:
+    """Process control frames; clients have nothing to say, so text is ignored."""
+    async for msg in ws:
+        if msg.type == WSMsgType.ERROR:
+            break
+
+
+def _static_handler(static_dir: Path, name: str) -> Any:
+    path = static_dir / name
+
+    async def handler(request: web.Request) -> web.StreamResponse:
+        if not path.is_file():
+            raise web.HTTPNotFound()
+        return web.FileResponse(path, headers={"Content-Type": STATIC_FILES.get(name, "application/json")})
+
+    return handler
+
+
+def add_routes(app: web.Application, static_dir: Path) -> None:
+    """Register the API and the dashboard. Static files are a fixed list (no path traversal)."""
+    r = app.router
+    r.add_get(f"{API}/healthz", healthz)
+    r.add_get(f"{API}/status", status)
+    r.add_get(f"{API}/lights", lights)
+    r.add_get(f"{API}/probe.exr", probe_exr)
+    r.add_get(f"{API}/probe.hdr", probe_hdr)
+    r.add_get(f"{API}/preview.jpg", preview)
+    r.add_get(f"{API}/stream", stream)
+    r.add_get(f"{API}/config", get_config)
+    r.add_put(f"{API}/config", put_config)
+    r.add_get(f"{API}/openapi.json", _static_handler(static_dir, "openapi.json"))
+    r.add_get("/", _static_handler(static_dir, "index.html"))
+    for name in STATIC_FILES:
+        r.add_get(f"/static/{name}", _static_handler(static_dir, name))

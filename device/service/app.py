@@ -1,0 +1,252 @@
+"""``create_app``: one :class:`aiohttp.web.Application` wiring config, camera, pipeline, API,
+dashboard and mDNS.
+
+State lives on the app under typed :class:`aiohttp.web.AppKey` s. Each resource is a
+``cleanup_ctx`` entry, started in order and torn down in reverse, only if it started:
+camera -> pipeline task -> mDNS registration -> systemd notifier/watchdog; open WebSockets are
+closed (1001) on shutdown, before the cleanups run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+import weakref
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from device.service.auth import check_bearer
+from device.service.config import ServiceConfig
+from device.service.errors import ApiError, Handler, error_middleware
+from device.service.notify import Notifier
+from device.service.runner import PipelineLike, Runner
+
+__all__ = ["PORT", "STATE", "ServiceState", "create_app"]
+
+log = logging.getLogger(__name__)
+
+VERSION = "0.1.0"
+
+
+@dataclass
+class ServiceState:
+    """Everything the handlers share. ``config`` is replaced (never mutated) on PUT /config."""
+
+    config: ServiceConfig
+    token: str
+    probe_id: str
+    runner: Runner
+    camera: Any = None
+    advertiser: Any = None
+    notifier: Notifier = field(default_factory=lambda: Notifier({}))
+    websockets: weakref.WeakSet[web.WebSocketResponse] = field(default_factory=weakref.WeakSet)
+    ws_dropped: int = 0
+    ws_frames_skipped: int = 0
+    config_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    version: str = VERSION
+    started: float = field(default_factory=time.time)
+
+
+STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
+PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
+
+CameraFactory = Callable[[], Any]
+PipelineFactory = Callable[[Any, ServiceConfig], PipelineLike]
+
+
+# ---- middlewares ----------------------------------------------------------------------------------
+def _token_from(request: web.Request) -> str | None:
+    header = request.headers.get("Authorization")
+    if header:
+        return header
+    # Browsers cannot set headers on a WebSocket: accept ?access_token= for GET only.
+    q = request.query.get("access_token")
+    return f"Bearer {q}" if q and request.method == "GET" else None
+
+
+@web.middleware
+async def auth_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+    st = request.app[STATE]
+    path = request.path
+    if path.startswith("/api/v1/") and path != "/api/v1/healthz" and request.method != "OPTIONS":
+        write = request.method not in ("GET", "HEAD")
+        if write or st.config.get("service", "require_token_for_reads"):
+            header = _token_from(request)
+            if header is None:
+                raise ApiError(401, "missing bearer token (Authorization: Bearer <token>; "
+                               "see `lightprobe token`)", param="Authorization",
+                               headers={"WWW-Authenticate": 'Bearer realm="lightprobe"'})
+            if not check_bearer(header, st.token):
+                raise ApiError(403, "wrong bearer token", param="Authorization")
+    return await handler(request)
+
+
+@web.middleware
+async def cors_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """CORS is off unless ``service.cors_origins`` lists the requesting origin."""
+    origins = request.app[STATE].config.get("service", "cors_origins")
+    origin = request.headers.get("Origin")
+    allowed = bool(origin) and (origin in origins or "*" in origins)
+    if request.method == "OPTIONS" and allowed and request.headers.get("Access-Control-Request-Method"):
+        resp: web.StreamResponse = web.Response(status=204)
+    else:
+        resp = await handler(request)
+    if allowed and not resp.prepared:
+        resp.headers["Access-Control-Allow-Origin"] = origin or ""
+        resp.headers["Access-Control-Allow-Headers"] = "Authorization, Content-Type"
+        resp.headers["Access-Control-Allow-Methods"] = "GET, PUT, OPTIONS"
+        resp.headers["Vary"] = "Origin"
+    return resp
+
+
+@web.middleware
+async def headers_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+    resp = await handler(request)
+    if not resp.prepared:
+        resp.headers.setdefault("X-Content-Type-Options", "nosniff")
+        resp.headers.setdefault("Cache-Control", "no-store")
+    return resp
+
+
+# ---- cleanup contexts -----------------------------------------------------------------------------
+def _camera_ctx(make_camera: CameraFactory) -> Callable[[web.Application], AsyncIterator[None]]:
+    async def ctx(app: web.Application) -> AsyncIterator[None]:
+        st = app[STATE]
+        st.camera = make_camera()
+        try:
+            yield
+        finally:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(st.camera.close(), 2.0)
+
+    return ctx
+
+
+def _warm_imports() -> None:
+    """Import the encoders once at startup, in a thread, so no request pays (and no request
+    stalls the loop on the import lock) for it later."""
+    import cv2  # noqa: F401
+
+    import device.imageio  # noqa: F401
+
+
+async def _pipeline_ctx(app: web.Application) -> AsyncIterator[None]:
+    st = app[STATE]
+    await asyncio.to_thread(_warm_imports)
+    st.runner.start()
+    try:
+        yield
+    finally:
+        await st.runner.stop()
+
+
+async def _close_websockets(app: web.Application) -> None:
+    """on_shutdown: wake every stream handler and send close frames (1001 going away)."""
+    st = app[STATE]
+    await st.runner.hub.close()
+    socks = list(st.websockets)
+    if socks:
+        await asyncio.wait([asyncio.create_task(_close_ws(ws)) for ws in socks], timeout=1.5)
+
+
+async def _close_ws(ws: web.WebSocketResponse) -> None:
+    with contextlib.suppress(Exception):
+        await asyncio.wait_for(ws.close(code=1001, message=b"server shutdown"), 1.0)
+
+
+async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
+    st = app[STATE]
+    cfg = st.config
+    if not cfg.get("mdns", "enabled"):
+        yield
+        return
+    from device.service.mdns import Advertiser, MdnsInfo
+
+    info = MdnsInfo(probe_id=st.probe_id, name=cfg.get("probe", "name"), port=app[PORT],
+                    version=st.version, model=cfg.get("probe", "model"),
+                    sampler=cfg.get("pipeline", "sampler"),
+                    interfaces=list(cfg.get("mdns", "interfaces")))
+    adv = Advertiser(info)
+    try:
+        await adv.start()
+        st.advertiser = adv
+    except Exception as e:  # no multicast route must not stop the API
+        log.warning("mdns: cannot advertise: %s", e)
+        with contextlib.suppress(Exception):
+            await adv.close()
+        yield
+        return
+    try:
+        yield
+    finally:
+        st.advertiser = None
+        await asyncio.wait_for(adv.close(), 2.0)
+
+
+async def _notify_ctx(app: web.Application) -> AsyncIterator[None]:
+    st = app[STATE]
+    task = None
+    interval = st.notifier.watchdog_interval
+    if interval:
+        task = asyncio.create_task(_watchdog(st, interval), name="sd-watchdog")
+    try:
+        yield
+    finally:
+        st.notifier.stopping()
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+
+async def _watchdog(st: ServiceState, interval: float) -> None:
+    """WATCHDOG=1 every ``interval`` s while the loop makes progress: frames, or reconnect
+    attempts while the camera is away. A ``step()`` that hangs stops the pings."""
+    last_status = ""
+    while True:
+        fps = float(st.config.get("pipeline", "fps"))
+        if st.runner.alive(within=max(2 * interval, 5.0 / fps) + st.runner.backoff_max):
+            st.notifier.watchdog()
+        status = f"{st.runner.camera_state}, {st.runner.frames} frames, {st.runner.fps:.1f} fps"
+        if status.split(",")[0] != last_status:
+            st.notifier.status(status)
+            last_status = status.split(",")[0]
+        await asyncio.sleep(interval)
+
+
+# ---- the app --------------------------------------------------------------------------------------
+def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline: PipelineFactory, *,
+               token: str, probe_id: str, port: int | None = None, notifier: Notifier | None = None,
+               backoff: tuple[float, float] = (0.5, 8.0)) -> web.Application:
+    """Build the service. ``make_camera()`` returns an unopened camera; ``make_pipeline(camera,
+    config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
+    sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` is what mDNS
+    advertises (default ``service.port``)."""
+    from device.service import api
+
+    app = web.Application(
+        client_max_size=int(config.get("service", "client_max_size")),
+        middlewares=[headers_middleware, cors_middleware, error_middleware, auth_middleware],
+    )
+    app[PORT] = int(port if port is not None else config.get("service", "port"))
+    state_holder: dict[str, ServiceState] = {}
+
+    def build(cfg: ServiceConfig) -> PipelineLike:
+        return make_pipeline(state_holder["s"].camera, cfg)
+
+    reconf = getattr(make_pipeline, "reconfigure", None)  # optional: apply config in place
+    runner = Runner(build, config, backoff_initial=backoff[0], backoff_max=backoff[1], reconfigure=reconf)
+    st = ServiceState(config=config, token=token, probe_id=probe_id, runner=runner,
+                      notifier=notifier or Notifier({}))
+    state_holder["s"] = st
+    app[STATE] = st
+    api.add_routes(app, Path(__file__).parent / "static")
+    app.cleanup_ctx.extend([_camera_ctx(make_camera), _pipeline_ctx, _mdns_ctx, _notify_ctx])
+    app.on_shutdown.append(_close_websockets)
+    return app

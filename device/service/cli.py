@@ -1,0 +1,225 @@
+"""``lightprobe serve``: run the probe service.
+
+State directory: ``--state-dir``, else ``$STATE_DIRECTORY`` (systemd), else ``./state``. It holds
+the API token (mode 0600), the writable config (``config.toml``) and an optional
+``calibration.json``. When the state dir has no config yet, ``$CONFIGURATION_DIRECTORY/
+lightprobe.toml`` (installer defaults, read-only under systemd) seeds it. SIGTERM/SIGINT shut
+down gracefully within 3 s: WebSockets closed, mDNS goodbyes, camera closed, ``STOPPING=1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["main"]
+
+log = logging.getLogger("lightprobe.service")
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line (journald keeps it as MESSAGE; log shippers parse it)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        out: dict[str, Any] = {"ts": round(record.created, 3), "level": record.levelname.lower(),
+                               "logger": record.name, "msg": record.getMessage()}
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out)
+
+
+def _setup_logging(fmt: str, level: str) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    if fmt == "json" or (fmt == "auto" and not sys.stderr.isatty()):
+        handler.setFormatter(JsonFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+    logging.getLogger("aiohttp.access").setLevel(logging.WARNING)
+
+
+def state_dir_from(arg: str | None, env: dict[str, str]) -> Path:
+    if arg:
+        return Path(arg)
+    if env.get("STATE_DIRECTORY"):
+        return Path(env["STATE_DIRECTORY"].split(":")[0])
+    return Path("state")
+
+
+def load_service_config(config_arg: str | None, state_dir: Path, env: dict[str, str]) -> Any:
+    from device.service.config import ServiceConfig, load_config
+
+    if config_arg:
+        return load_config(config_arg)
+    target = state_dir / "config.toml"
+    if target.exists():
+        return load_config(target)
+    seed = Path(env.get("CONFIGURATION_DIRECTORY", "/nonexistent").split(":")[0]) / "lightprobe.toml"
+    cfg = load_config(seed) if seed.exists() else ServiceConfig()
+    return ServiceConfig(cfg.data, target)
+
+
+def camera_factory(spec: str, scene: str | None) -> Any:
+    """An unopened camera for ``--camera``; the simulator needs ``--scene``."""
+    from device.errors import InputError
+
+    def make() -> Any:
+        if spec == "sim":
+            from sim.camera import SimCamera
+            from sim.scenarios import load_scene
+
+            return SimCamera(load_scene(scene or "flashlight"))
+        try:
+            from drivers.discovery import open_camera
+        except ImportError as e:
+            raise InputError(f"camera backend for {spec!r} is not available: {e}", param="--camera") from e
+        return open_camera(spec)
+
+    return make
+
+
+def load_calibration(state_dir: Path, camera: Any) -> Any:
+    """``state_dir/calibration.json`` if present, else the camera's own (the simulator's truth)."""
+    from calibration.model import Calibration
+
+    p = state_dir / "calibration.json"
+    if p.exists():
+        return Calibration.from_json(json.loads(p.read_text(encoding="utf-8")))
+    for attr in ("truth_calibration", "calibration"):
+        cal = getattr(camera, attr, None)
+        cal = cal() if callable(cal) else cal
+        if cal is not None:
+            return cal
+    return Calibration()
+
+
+class PipelineFactory:
+    """Builds ``device.pipeline.Pipeline`` from the service config; reconfigures it in place."""
+
+    def __init__(self, state_dir: Path, probe_id: str) -> None:
+        self.state_dir, self.probe_id = state_dir, probe_id
+
+    def pipeline_config(self, cfg: Any) -> Any:
+        from device.pipeline import PipelineConfig
+
+        return PipelineConfig(fps=cfg.get("pipeline", "fps"), sampler=cfg.get("pipeline", "sampler"),
+                              light_count=cfg.get("pipeline", "light_count"),
+                              max_exposures=cfg.get("pipeline", "max_exposures"),
+                              equirect_height=cfg.get("pipeline", "equirect_height"),
+                              nside=cfg.get("pipeline", "nside"), probe_id=self.probe_id)
+
+    def __call__(self, camera: Any, cfg: Any) -> Any:
+        from device.pipeline import Pipeline
+
+        return Pipeline(camera, load_calibration(self.state_dir, camera), self.pipeline_config(cfg))
+
+    def reconfigure(self, pipeline: Any, cfg: Any) -> None:
+        pipeline.reconfigure(self.pipeline_config(cfg))
+
+
+def pipeline_factory(state_dir: Path, probe_id: str) -> PipelineFactory:
+    return PipelineFactory(state_dir, probe_id)
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    from device.errors import InputError
+
+    infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    family, _, _, _, addr = infos[0]
+    s = socket.socket(family, socket.SOCK_STREAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        s.bind(addr)
+    except OSError as e:
+        s.close()
+        raise InputError(f"cannot listen on {host}:{port}: {e.strerror}", param="--port") from e
+    s.listen(128)
+    s.setblocking(False)
+    return s
+
+
+async def serve(a: argparse.Namespace) -> int:
+    from aiohttp import web
+
+    from device.service.app import create_app
+    from device.service.auth import load_or_create_token
+    from device.service.mdns import stable_probe_id
+    from device.service.notify import Notifier
+
+    env = dict(os.environ)
+    state_dir = state_dir_from(a.state_dir, env)
+    cfg = load_service_config(a.config, state_dir, env)
+    host = a.host or cfg.get("service", "host")
+    port = a.port if a.port is not None else cfg.get("service", "port")
+    token = await asyncio.to_thread(load_or_create_token, state_dir)
+    probe_id = cfg.get("probe", "id") or await asyncio.to_thread(stable_probe_id)
+    sock = _bind(host, port)
+    port = sock.getsockname()[1]
+    notifier = Notifier(env)
+    app = create_app(cfg, camera_factory(a.camera, a.scene), pipeline_factory(state_dir, probe_id),
+                     token=token, probe_id=probe_id, port=port, notifier=notifier,
+                     backoff=(a.backoff_initial, a.backoff_max))
+    runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=0.5, access_log=None)
+    await runner.setup()
+    await web.SockSite(runner, sock).start()
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    url = f"http://{shown}:{port}/" if ":" not in shown else f"http://[{shown}]:{port}/"
+    print(f"lightprobe: dashboard {url}", flush=True)
+    print(f"lightprobe: API token {token}  (state dir {state_dir.resolve()})", flush=True)
+    notifier.ready(f"serving on {url}")
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await stop.wait()
+    t0 = time.monotonic()
+    log.info("shutting down")
+    notifier.stopping()
+    try:
+        await asyncio.wait_for(runner.cleanup(), 2.7)
+    except TimeoutError:
+        log.warning("shutdown took longer than 2.7 s; exiting anyway")
+    log.info("stopped in %.2f s", time.monotonic() - t0)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lightprobe serve", description="Run the probe service "
+                                "(HTTP/WebSocket API under /api/v1, dashboard at /, mDNS advertising).")
+    p.add_argument("--camera", default="sim", help="sim | v4l2:/dev/videoN | libcamera | uvc (default sim)")
+    p.add_argument("--scene", default=None, help="simulator scene NAME or map PATH (default flashlight)")
+    p.add_argument("--host", default=None, help="listen address (default from config, 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="listen port (default from config, 8080; 0 = any)")
+    p.add_argument("--config", default=None, help="TOML config file (default STATE_DIR/config.toml)")
+    p.add_argument("--state-dir", default=None, help="state directory (default $STATE_DIRECTORY or ./state)")
+    p.add_argument("--log-format", choices=["auto", "json", "text"], default="auto",
+                   help="log format on stderr (auto: text on a terminal, JSON lines otherwise)")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.add_argument("--backoff-initial", type=float, default=0.5, help="first reconnect delay, s")
+    p.add_argument("--backoff-max", type=float, default=8.0, help="longest reconnect delay, s")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    from device.cli import run_command
+
+    a = build_parser().parse_args(argv)
+    _setup_logging(a.log_format, a.log_level)
+    if a.port is not None and not 0 <= a.port <= 65535:
+        print(f"lightprobe: error: --port must be in [0, 65535], got {a.port}", file=sys.stderr)
+        return 2
+    with contextlib.suppress(KeyboardInterrupt):
+        return run_command(asyncio.run, serve(a))
+    return 130

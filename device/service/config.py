@@ -1,0 +1,232 @@
+"""Service configuration: a TOML file of flat tables, with defaults, validation and atomic writes.
+
+The file has four tables (every key optional; missing keys take the defaults below)::
+
+    [service]   host, port, require_token_for_reads, cors_origins, client_max_size, ws_send_timeout
+    [pipeline]  fps, sampler, light_count, max_exposures, equirect_height, nside
+    [probe]     name, id, model
+    [mdns]      enabled, interfaces
+
+Reading uses :mod:`tomllib`; writing is our own small serialiser for flat tables of strings,
+numbers, booleans and lists of strings, done atomically (temp file in the same folder, fsync,
+rename, fsync of the folder) so a crash at any instant leaves the old or the new file, never a torn
+one. Validation raises :class:`device.errors.InputError` naming the ``table.key`` at fault.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+import os
+import re
+import tempfile
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from device.errors import InputError
+
+__all__ = [
+    "SAMPLERS",
+    "ServiceConfig",
+    "dump_toml",
+    "load_config",
+    "save_config",
+    "validate_patch",
+]
+
+# Sampler names the pipeline understands (CONVENTIONS.md `lightprobe sample --method`).
+SAMPLERS = ("q2tree", "pharr", "hemigon", "median-cut")
+
+# (type, default, validator description, check) per key; check returns True when valid.
+_Spec = tuple[type, Any, str, Any]
+_NAME_RE = re.compile(r"^[^\x00-\x1f\x7f.][^\x00-\x1f\x7f]{0,62}$")
+
+
+def _in(lo: float, hi: float) -> Any:
+    return lambda v: lo <= v <= hi
+
+
+SCHEMA: dict[str, dict[str, _Spec]] = {
+    "service": {
+        "host": (str, "127.0.0.1", "a host name or address", lambda v: 0 < len(v) <= 255),
+        "port": (int, 8080, "an integer in [0, 65535]", _in(0, 65535)),
+        "require_token_for_reads": (bool, False, "true or false", None),
+        "cors_origins": (list, [], "a list of origin strings (empty = CORS off)",
+                         lambda v: all(isinstance(s, str) and len(s) < 256 for s in v) and len(v) <= 32),
+        "client_max_size": (int, 64 * 1024, "an integer in [1024, 16777216] bytes", _in(1024, 1 << 24)),
+        "ws_send_timeout": (float, 5.0, "seconds in [0.1, 60]", _in(0.1, 60.0)),
+    },
+    "pipeline": {
+        "fps": (float, 10.0, "frames per second in [0.1, 60]", _in(0.1, 60.0)),
+        "sampler": (str, "q2tree", "one of " + ", ".join(SAMPLERS), lambda v: v in SAMPLERS),
+        "light_count": (int, 256, "an integer in [1, 4096]", _in(1, 4096)),
+        "max_exposures": (int, 4, "an integer in [1, 16]", _in(1, 16)),
+        "equirect_height": (int, 256, "an integer in [16, 2048]", _in(16, 2048)),
+        "nside": (int, 64, "a power of two in [1, 1024]", lambda v: 1 <= v <= 1024 and v & (v - 1) == 0),
+    },
+    "probe": {
+        "name": (str, "", "up to 63 printable characters, not starting with '.'",
+                 lambda v: v == "" or bool(_NAME_RE.match(v))),
+        "id": (str, "", "up to 32 characters [A-Za-z0-9_-] (empty = from machine-id)",
+               lambda v: re.fullmatch(r"[A-Za-z0-9_-]{0,32}", v) is not None),
+        "model": (str, "lightprobe-sim", "up to 63 printable characters",
+                  lambda v: len(v) <= 63 and v.isprintable()),
+    },
+    "mdns": {
+        "enabled": (bool, True, "true or false", None),
+        "interfaces": (list, [], "a list of interface addresses (empty = all)",
+                       lambda v: all(isinstance(s, str) and 0 < len(s) < 64 for s in v) and len(v) <= 16),
+    },
+}
+
+# Keys that take effect only after a restart (the listening socket, the mDNS sockets).
+RESTART_KEYS = {("service", "host"), ("service", "port"), ("service", "client_max_size"),
+                ("mdns", "enabled"), ("mdns", "interfaces"), ("pipeline", "equirect_height"),
+                ("pipeline", "nside"), ("pipeline", "max_exposures")}
+
+
+def _defaults() -> dict[str, dict[str, Any]]:
+    return {t: {k: copy.deepcopy(spec[1]) for k, spec in keys.items()} for t, keys in SCHEMA.items()}
+
+
+@dataclass
+class ServiceConfig:
+    """The validated configuration: ``data[table][key]``. Use ``get`` / ``with_patch``."""
+
+    data: dict[str, dict[str, Any]] = field(default_factory=_defaults)
+    path: Path | None = None
+
+    def get(self, table: str, key: str) -> Any:
+        return self.data[table][key]
+
+    def to_json(self) -> dict[str, dict[str, Any]]:
+        return copy.deepcopy(self.data)
+
+    def with_patch(self, patch: Any) -> ServiceConfig:
+        """A new config with ``patch`` (a partial ``{table: {key: value}}``) validated and merged."""
+        clean = validate_patch(patch)
+        data = copy.deepcopy(self.data)
+        for t, kv in clean.items():
+            data[t].update(kv)
+        return ServiceConfig(data, self.path)
+
+
+def _coerce(table: str, key: str, value: Any) -> Any:
+    """Check one value against the schema; return it in its canonical type."""
+    typ, _default, desc, check = SCHEMA[table][key]
+    param = f"{table}.{key}"
+    ok_type = isinstance(value, typ) and not (typ is int and isinstance(value, bool))
+    if typ is float and isinstance(value, int) and not isinstance(value, bool):
+        value, ok_type = float(value), True
+    if not ok_type:
+        raise InputError(f"{param} must be {desc}, got {type(value).__name__}", param=param)
+    if typ is float and not math.isfinite(value):
+        raise InputError(f"{param} must be {desc}, got {value!r}", param=param)
+    if check is not None and not check(value):
+        shown = repr(value) if len(repr(value)) < 80 else repr(value)[:77] + "..."
+        raise InputError(f"{param} must be {desc}, got {shown}", param=param)
+    return list(value) if typ is list else value
+
+
+def validate_patch(patch: Any) -> dict[str, dict[str, Any]]:
+    """Validate a partial config ``{table: {key: value}}``; unknown tables/keys are errors."""
+    if not isinstance(patch, dict):
+        raise InputError("config must be a JSON object of tables", param="config")
+    out: dict[str, dict[str, Any]] = {}
+    for table, kv in patch.items():
+        if table not in SCHEMA:
+            raise InputError(f"unknown config table {str(table)[:40]!r}", param=str(table)[:40])
+        if not isinstance(kv, dict):
+            raise InputError(f"config table {table!r} must be an object", param=table)
+        for key, value in kv.items():
+            if key not in SCHEMA[table]:
+                raise InputError(f"unknown config key {table}.{str(key)[:40]}", param=f"{table}.{str(key)[:40]}")
+            out.setdefault(table, {})[key] = _coerce(table, key, value)
+    return out
+
+
+def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
+    """Read a TOML config (missing file = defaults). Raises InputError naming the file or key."""
+    if path is None:
+        return ServiceConfig()
+    p = Path(path)
+    if not p.exists():
+        return ServiceConfig(path=p)
+    try:
+        raw = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+        raise InputError(f"{p}: cannot read config: {e}", param=str(p)) from e
+    try:
+        return ServiceConfig(path=p).with_patch(raw)
+    except InputError as e:
+        raise InputError(f"{p}: {e}", param=e.param) from e
+
+
+# ---- TOML writing ---------------------------------------------------------------------------------
+def _toml_str(s: str) -> str:
+    out = ['"']
+    for ch in s:
+        if ch in ('"', "\\"):
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+    if isinstance(v, str):
+        return _toml_str(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_toml(data: dict[str, dict[str, Any]]) -> str:
+    """Serialise flat tables ``{table: {key: scalar | list}}`` to TOML text."""
+    lines = ["# lightprobe service configuration (written by the service; comments are not kept)"]
+    for table, kv in data.items():
+        lines.append(f"\n[{table}]")
+        for key, value in kv.items():
+            lines.append(f"{key} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically: temp + fsync + rename + fsync of the directory."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    dfd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(dfd)
+    finally:
+        os.close(dfd)
+
+
+def save_config(cfg: ServiceConfig, path: str | os.PathLike[str] | None = None) -> None:
+    """Write ``cfg`` atomically to ``path`` (default ``cfg.path``); blocking (call off the loop)."""
+    target = Path(path) if path is not None else cfg.path
+    if target is None:
+        raise InputError("no config file to write to (start with --config FILE)", param="config")
+    atomic_write_text(target, dump_toml(cfg.data))

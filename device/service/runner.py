@@ -1,0 +1,263 @@
+"""The frame loop: drives the pipeline, publishes the newest light set, survives camera faults.
+
+- **Newest frame wins.** Each frame's light set is serialised once and stored in a
+  :class:`FrameHub` slot that holds only the latest payload; WebSocket clients wait for a newer
+  version than the one they sent, so a slow client skips frames and nothing queues without bound.
+- **Faults.** A :class:`drivers.base.CameraError` from ``pipeline.step()`` marks the published
+  lights ``stale: true`` (the last good set stays served), stops the pipeline (closing the
+  camera) and reopens it with exponential backoff (``backoff_initial`` .. ``backoff_max``).
+- **Pacing.** The loop targets ``pipeline.fps`` from the config; heavy work happens inside the
+  pipeline off the event loop, JSON serialisation runs in a worker thread.
+- **Progress**: ``last_progress`` (frames) drives ``/healthz``; ``last_activity`` (frames or
+  reconnect attempts) drives the systemd watchdog, so a hung ``step()`` gets the service restarted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+from device.sampling.base import LightSet
+
+__all__ = ["FrameHub", "PipelineLike", "Runner"]
+
+log = logging.getLogger(__name__)
+
+
+class PipelineLike(Protocol):
+    """The part of ``device.pipeline.Pipeline`` the service uses."""
+
+    stats: dict[str, Any]
+
+    async def start(self) -> None: ...
+
+    async def step(self) -> Any: ...  # FrameResult
+
+    async def stop(self) -> None: ...
+
+    def lights_on_demand(self, method: str, count: int) -> LightSet: ...
+
+
+class FrameHub:
+    """A single-slot broadcast: ``publish`` replaces the payload, waiters get the newest one."""
+
+    def __init__(self) -> None:
+        self.version = 0
+        self.payload: str | None = None
+        self._cond = asyncio.Condition()
+        self.closed = False
+
+    async def publish(self, payload: str) -> None:
+        async with self._cond:
+            self.version += 1
+            self.payload = payload
+            self._cond.notify_all()
+
+    async def wait_newer(self, seen: int) -> tuple[int, str | None]:
+        """Wait until a version newer than ``seen`` exists (or the hub closes); return it."""
+        async with self._cond:
+            await self._cond.wait_for(lambda: self.version > seen or self.closed)
+            return self.version, self.payload
+
+    async def close(self) -> None:
+        async with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+
+def _lights_payload(lights: LightSet) -> str:
+    return json.dumps(lights.to_json(), separators=(",", ":"))
+
+
+class Runner:
+    """Owns the pipeline task. ``make_pipeline(cfg)`` builds a pipeline for the current config
+    (called again after a config change that needs a rebuild, e.g. a new sampler)."""
+
+    def __init__(self, make_pipeline: Callable[[Any], PipelineLike], config: Any, *,
+                 backoff_initial: float = 0.5, backoff_max: float = 8.0,
+                 reconfigure: Callable[[Any, Any], None] | None = None) -> None:
+        self.make_pipeline = make_pipeline
+        self.reconfigure = reconfigure
+        self._started = False
+        self.config = config
+        self.backoff_initial, self.backoff_max = backoff_initial, backoff_max
+        self.hub = FrameHub()
+        self.pipeline: PipelineLike | None = None
+        self.camera_state = "starting"
+        self.last_error: str | None = None
+        self.reconnects = 0
+        self.frames = 0
+        self.frames_skipped = 0
+        self.result: Any = None  # the last FrameResult
+        self.lights: LightSet | None = None
+        self.lights_text: str | None = None  # self.lights as JSON (serialised once, off the loop)
+        self.stale = True
+        self.last_progress: float | None = None
+        self.last_activity: float | None = None  # a frame or a reconnect attempt (watchdog)
+        self.started_at = time.monotonic()
+        self.fps = 0.0
+        self._last_frame_t: float | None = None
+        self._rebuild = False
+        self._task: asyncio.Task[None] | None = None
+        self.cache: dict[str, tuple[int, bytes]] = {}  # per-frame encoded images (api.py)
+
+    # ---- lifecycle --------------------------------------------------------------------------
+    def start(self) -> None:
+        self._task = asyncio.create_task(self._run(), name="lightprobe-pipeline")
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        await self._stop_pipeline()
+        self.camera_state = "stopped"
+        await self.hub.close()
+
+    def request_rebuild(self, config: Any) -> None:
+        """Use ``config`` from the next frame on: ``reconfigure`` the pipeline in place when the
+        factory can (keeps tables and sampler state), else rebuild it."""
+        self.config = config
+        self._rebuild = True
+
+    def set_config(self, config: Any) -> None:
+        """Use ``config`` for pacing without touching the pipeline (fps-only changes)."""
+        self.config = config
+
+    async def _stop_pipeline(self, *, drop: bool = True) -> None:
+        """Stop the pipeline (closing the camera). ``drop=False`` keeps the object, its tables
+        and sampler state for a fast restart after a camera fault."""
+        p = self.pipeline
+        self._started = False
+        if drop:
+            self.pipeline = None
+        if p is not None:
+            try:
+                await asyncio.wait_for(p.stop(), 3.0)
+            except Exception as e:  # a failing stop must not stop the loop
+                log.warning("pipeline stop failed: %s", e)
+
+    async def _ensure_started(self) -> PipelineLike:
+        if self._rebuild:
+            self._rebuild = False
+            if self.pipeline is not None and self.reconfigure is not None:
+                await asyncio.to_thread(self.reconfigure, self.pipeline, self.config)
+            else:
+                await self._stop_pipeline()
+        if self.pipeline is None:
+            self.camera_state = "starting"
+            # construction may build lookup tables: off the loop
+            self.pipeline = await asyncio.to_thread(self.make_pipeline, self.config)
+        if not self._started:
+            self.camera_state = "starting"
+            await self.pipeline.start()
+            self._started = True
+        return self.pipeline
+
+    # ---- the loop ---------------------------------------------------------------------------
+    async def _run(self) -> None:
+        from drivers.base import CameraError
+
+        backoff = self.backoff_initial
+        while True:
+            try:
+                pipeline = await self._ensure_started()
+                t0 = time.monotonic()
+                result = await pipeline.step()
+                await self._publish(result)
+                self.camera_state, self.last_error = "running", None
+                backoff = self.backoff_initial
+                period = 1.0 / float(self.config.get("pipeline", "fps"))
+                await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:
+                camera_fault = isinstance(e, CameraError)
+                if camera_fault:
+                    log.warning("camera error (%s): %s; reconnecting in %.2f s", type(e).__name__, e, backoff)
+                else:
+                    log.exception("pipeline failed; rebuilding it in %.2f s", backoff)
+                self.camera_state = "reconnecting"
+                self.last_error = f"{type(e).__name__}: {e}"
+                self.reconnects += 1
+                self.last_activity = time.monotonic()
+                await self._mark_stale()
+                await self._stop_pipeline(drop=not camera_fault)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2.0, self.backoff_max)
+
+    async def _publish(self, result: Any) -> None:
+        lights: LightSet = result.lights
+        if lights.stale:
+            lights = dataclasses.replace(lights, stale=False)
+        payload = await asyncio.to_thread(_lights_payload, lights)
+        now = time.monotonic()
+        if self._last_frame_t is not None:
+            dt = max(now - self._last_frame_t, 1e-6)
+            self.fps = 1.0 / dt if self.fps == 0.0 else 0.8 * self.fps + 0.2 / dt
+        self._last_frame_t = now
+        self.result, self.lights, self.stale = result, lights, False
+        self.lights_text = payload
+        self.frames += 1
+        self.frames_skipped += int(bool(getattr(result, "skipped", False)))
+        self.last_progress = self.last_activity = now
+        self.cache.clear()
+        await self.hub.publish(payload)
+
+    async def _mark_stale(self) -> None:
+        self.stale = True
+        self._last_frame_t = None
+        self.fps = 0.0
+        if self.lights is not None and not self.lights.stale:
+            self.lights = dataclasses.replace(self.lights, stale=True)
+            self.lights_text = await asyncio.to_thread(_lights_payload, self.lights)
+            await self.hub.publish(self.lights_text)
+
+    # ---- views for the API ------------------------------------------------------------------
+    def progressing(self, within: float) -> bool:
+        """True when a frame was published in the last ``max(within, 3 x last burst time)`` s
+        (a slow camera or a long exposure is not a stall)."""
+        burst = float((getattr(self.result, "timings", None) or {}).get("total", 0.0)) if self.result else 0.0
+        window = max(within, 3.0 * burst)
+        return self.last_progress is not None and time.monotonic() - self.last_progress <= window
+
+    def alive(self, within: float) -> bool:
+        """True when the loop published a frame or attempted a reconnect in the last ``within``
+        seconds: a pipeline stuck inside ``step()`` is not alive (the watchdog then restarts us)."""
+        return self.last_activity is not None and time.monotonic() - self.last_activity <= within
+
+    def status(self) -> dict[str, Any]:
+        r = self.result
+        stats = dict(getattr(self.pipeline, "stats", {}) or {}) if self.pipeline is not None else {}
+        fps_target = float(self.config.get("pipeline", "fps"))
+        healthy = not self.stale and self.progressing(max(3.0 / fps_target, 2.0))
+        health = "ok" if healthy else ("starting" if self.frames == 0 and self.reconnects == 0 else "degraded")
+        pipe_stats = {k: v for k, v in stats.items() if isinstance(v, int | float | str | bool)}
+        return {
+            "health": health,
+            "camera": {"state": self.camera_state, "error": self.last_error, "reconnects": self.reconnects},
+            "stale": self.stale,
+            "frame": int(getattr(r, "frame", 0)) if r is not None else None,
+            "frames": self.frames,
+            "frames_skipped": self.frames_skipped,
+            "fps": round(self.fps, 3),
+            "fps_target": fps_target,
+            "timings": {k: float(v) for k, v in (getattr(r, "timings", {}) or {}).items()} if r is not None else {},
+            "exposures": [float(x) for x in getattr(r, "exposures", [])] if r is not None else [],
+            "histogram": np.asarray(getattr(r, "histogram", []), np.float64).astype(int).tolist()
+            if r is not None else [],
+            "calibration_id": getattr(r, "calibration_id", None) if r is not None else None,
+            "unit": getattr(r, "unit", None) if r is not None else None,
+            "uptime_s": round(time.monotonic() - self.started_at, 3),
+            "last_frame_age_s": None if self.last_progress is None
+            else round(time.monotonic() - self.last_progress, 3),
+            "pipeline": pipe_stats,
+        }

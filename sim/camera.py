@@ -1,0 +1,292 @@
+"""SimCamera: the simulated probe camera, implementing :class:`drivers.base.Camera` exactly.
+
+A frame is: scene truth at the frame's virtual time (light intensities averaged over the
+exposure) -> lens render (one sparse matmul, :mod:`sim.lens`) -> vignetting -> sensor noise and
+quantisation (:mod:`sim.sensor`) -> faults (:mod:`sim.faults`). Heavy numpy work runs in
+``asyncio.to_thread``.
+
+Clock and latency. Frame ``i`` (sequence ``i``) is exposed at virtual time ``t_i``; ``t``
+advances by ``1 / mode.max_fps`` per sensor frame (dropped frames advance it too), so with a
+fixed mode ``t_i = i / fps``. ``apply()`` called when the next frame is ``s`` lands on frame
+``s + k`` (``k = control_latency_frames``, default 2): frames ``s .. s + k - 1`` carry, truthfully,
+the old exposure and gain in their metadata. Sequence numbers and the clock continue across
+close/open. With ``realtime=True`` frames are paced at the frame rate (``asyncio.sleep``);
+by default they are returned as fast as they are computed.
+
+Ground truth: :meth:`SimCamera.truth_calibration`, :meth:`truth_radiance`,
+:meth:`render_radiance_image`, :attr:`scene`, :attr:`sensitivity`, :attr:`lens`, :attr:`sensor`.
+Deterministic for a seed: frame noise comes from ``default_rng((seed, sequence))``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import os
+import time
+
+import numpy as np
+
+from calibration.model import Calibration, LensMask, Photometric, Pose
+from drivers.base import (
+    Camera,
+    CameraDisconnected,
+    CameraError,
+    CameraUnavailable,
+    Capabilities,
+    CaptureTimeout,
+    ControlNotSupported,
+    Controls,
+    Frame,
+    FrameMetadata,
+    Mode,
+    PixelFormat,
+)
+
+from .faults import FaultKind, FaultPlan
+from .lens import SimLens, standard_lens
+from .scene import Scene
+from .sensor import SensorModel, raw_levels
+
+__all__ = ["DEFAULT_MODES", "SimCamera"]
+
+DEFAULT_MODES: tuple[Mode, ...] = (
+    Mode(640, 480, PixelFormat.RGB8, 30.0),
+    Mode(640, 480, PixelFormat.RAW12, 30.0),
+    Mode(640, 480, PixelFormat.RAW10, 30.0),
+    Mode(1280, 960, PixelFormat.RGB8, 15.0),
+    Mode(1280, 960, PixelFormat.RAW12, 15.0),
+)
+
+
+class SimCamera(Camera):
+    """The simulated probe (see the module docstring).
+
+    Parameters
+    ----------
+    scene : a :class:`Scene`, a scenario name or an equirect file path (``sim.scenarios``);
+        None means the static ``room`` scenario.
+    seed : noise and scenario seed.
+    latency_frames : frames between ``apply()`` and the first frame that shows it.
+    realtime : pace frames at the mode's frame rate.
+    scene_scale : multiplies the scene's radiance (truth included).
+    sensor : noise model; ``SensorModel()`` by default (sensitivity 2e4 e- per unit x s).
+    shared_data : where named scenarios find ``envmaps/`` (default ``../shared/data``).
+    """
+
+    name = "sim"
+
+    def __init__(self, scene: Scene | str | os.PathLike[str] | None = None, *, seed: int = 0,
+                 latency_frames: int = 2, realtime: bool = False, scene_scale: float = 1.0,
+                 sensor: SensorModel | None = None, modes: tuple[Mode, ...] = DEFAULT_MODES,
+                 exposure_range: tuple[float, float] = (1e-5, 1.0),
+                 gain_range: tuple[float, float] = (1.0, 16.0),
+                 shared_data: str | os.PathLike[str] | None = None) -> None:
+        if not isinstance(scene, Scene):
+            from .scenarios import load_scene
+
+            scene = load_scene("room" if scene is None else scene, seed=seed, shared_data=shared_data)
+        if scene_scale != 1.0:  # a shallow copy: the caller's scene keeps its own scale
+            scene = copy.copy(scene)
+            scene.scale *= float(scene_scale)
+        if latency_frames < 0:
+            raise ValueError(f"latency_frames must be >= 0, got {latency_frames}")
+        self._scene = scene
+        self.seed = int(seed)
+        self.realtime = bool(realtime)
+        self.sensor = sensor or SensorModel()
+        self.faults = FaultPlan()
+        self._caps = Capabilities(exposure_range=exposure_range, gain_range=gain_range,
+                                  modes=tuple(modes), has_frame_metadata=True,
+                                  control_latency_frames=int(latency_frames),
+                                  model="lightprobe-sim", serial=f"sim-{seed}")
+        self._mode = self._caps.modes[0]
+        self._lenses: dict[tuple[int, int], SimLens] = {}
+        self._open = False
+        self._unplugged_until = 0.0
+        self._lock = asyncio.Lock()
+        self._seq = 0
+        self._t = 0.0
+        self._pace_origin: float | None = None
+        self._reset_controls()
+
+    # -- protocol ---------------------------------------------------------------------------------
+    def _reset_controls(self) -> None:
+        lo, hi = self._caps.exposure_range
+        self._exposure = float(min(hi, max(lo, 1.0 / 60.0)))
+        self._gain = float(self._caps.gain_range[0])
+        self._pending: list[tuple[int, Controls]] = []
+
+    async def open(self) -> None:
+        if time.monotonic() < self._unplugged_until:
+            raise CameraUnavailable("simulated camera is unplugged", device=self.name)
+        if not self._open:
+            self._reset_controls()
+            self._pace_origin = None
+        self._open = True
+
+    async def close(self) -> None:
+        self._open = False
+
+    @property
+    def capabilities(self) -> Capabilities:
+        return self._caps
+
+    @property
+    def mode(self) -> Mode:
+        return self._mode
+
+    async def set_mode(self, mode: Mode) -> None:
+        if mode not in self._caps.modes:
+            raise ControlNotSupported(f"mode {mode} is not one of the camera's modes", device=self.name)
+        self._mode = mode
+
+    async def apply(self, controls: Controls) -> None:
+        self.check_controls(controls)
+        self._require_open()
+        self._pending.append((self._seq + self._caps.control_latency_frames, controls))
+
+    async def capture(self, timeout: float = 1.0) -> Frame:  # noqa: ASYNC109 - the protocol's signature
+        async with self._lock:
+            self._require_open()
+            fx = self.faults.next_capture()
+            if fx.drop:
+                self._advance(fx.drop)
+            if fx.raise_kind is not None:
+                await self._raise_fault(fx.raise_kind, fx.duration_s, timeout)
+            seq, t = self._seq, self._t
+            self._land_controls(seq)
+            exposure, gain, mode = self._exposure, self._gain, self._mode
+            self._advance(1)
+            data = await asyncio.to_thread(self._make_frame, t, seq, exposure, gain, mode, fx.lens_cap)
+            if fx.hot_pixels:
+                white = 255 if mode.format is PixelFormat.RGB8 else int(raw_levels(mode.format)[1])
+                FaultPlan.apply_hot_pixels(data, fx.hot_pixels, white)
+            if self.realtime:
+                await self._pace(t, timeout)
+        levels = (0.0, 255.0) if mode.format is PixelFormat.RGB8 else raw_levels(mode.format)
+        meta = FrameMetadata(exposure_s=exposure, gain=gain, timestamp_s=t, sequence=seq)
+        return Frame(data, meta, mode.format, black_level=levels[0], white_level=levels[1],
+                     extra={"sim_time_s": t, "scene": self._scene.name})
+
+    # -- internals --------------------------------------------------------------------------------
+    def _require_open(self) -> None:
+        if time.monotonic() < self._unplugged_until:
+            raise CameraDisconnected("simulated camera was unplugged", device=self.name)
+        if not self._open:
+            raise CameraUnavailable("simulated camera is not open", device=self.name)
+
+    def _advance(self, frames: int) -> None:
+        self._seq += frames
+        self._t += frames / self._mode.max_fps
+
+    def _land_controls(self, seq: int) -> None:
+        """Apply the pending requests whose landing frame has come (in request order)."""
+        still = []
+        for eff, c in self._pending:
+            if eff <= seq:
+                self._exposure = self._exposure if c.exposure_s is None else float(c.exposure_s)
+                self._gain = self._gain if c.gain is None else float(c.gain)
+            else:
+                still.append((eff, c))
+        self._pending = still
+
+    async def _raise_fault(self, kind: FaultKind, duration_s: float, wait_s: float) -> None:
+        self._advance(1)  # the frame is lost
+        if kind is FaultKind.CAPTURE_ERROR:
+            raise CameraError("simulated capture error", device=self.name)
+        if kind is FaultKind.TIMEOUT:
+            await asyncio.sleep(max(0.0, wait_s))
+            raise CaptureTimeout(f"no frame within {wait_s} s (simulated)", device=self.name)
+        self._open = False
+        self._unplugged_until = time.monotonic() + duration_s
+        raise CameraDisconnected("simulated camera disconnected", device=self.name)
+
+    async def _pace(self, t: float, wait_s: float) -> None:
+        loop = asyncio.get_running_loop()
+        if self._pace_origin is None:
+            self._pace_origin = loop.time() - t
+        delay = self._pace_origin + t - loop.time()
+        if delay > wait_s:
+            await asyncio.sleep(wait_s)
+            raise CaptureTimeout(f"no frame within {wait_s} s", device=self.name)
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+    def _make_frame(self, t: float, seq: int, exposure: float, gain: float, mode: Mode,
+                    lens_cap: bool) -> np.ndarray:
+        """Pixels of one frame (runs off the event loop)."""
+        lens = self.lens_for(mode)
+        if lens_cap:
+            w, h = lens.size
+            irr = np.zeros((h, w, 3), np.float32)
+        else:
+            rad = lens.render(self._scene.radiance_equirect(t, exposure))
+            irr = rad * lens.vignetting_image()[..., None]
+        rng = np.random.default_rng((self.seed, seq))
+        return self.sensor.capture(irr, exposure, gain, mode.format, rng)
+
+    # -- ground truth -----------------------------------------------------------------------------
+    def lens_for(self, mode: Mode | None = None) -> SimLens:
+        """The lens on the sensor of ``mode`` (default: the current mode)."""
+        m = mode or self._mode
+        if m.size not in self._lenses:
+            self._lenses[m.size] = standard_lens(m.width, m.height)
+        return self._lenses[m.size]
+
+    @property
+    def lens(self) -> SimLens:
+        return self.lens_for()
+
+    @property
+    def scene(self) -> Scene:
+        return self._scene
+
+    @property
+    def sensitivity(self) -> float:
+        """Electrons per (scene radiance unit x second), before vignetting and gain."""
+        return self.sensor.sensitivity
+
+    @property
+    def sequence(self) -> int:
+        """Sequence number of the next sensor frame."""
+        return self._seq
+
+    @property
+    def time_s(self) -> float:
+        """Virtual time of the next sensor frame."""
+        return self._t
+
+    def truth_calibration(self, mode: Mode | None = None) -> Calibration:
+        """The ground-truth calibration for ``mode`` (default current).
+
+        Fisheye K, D and ``fov_deg`` (the clean field of view inside the housing ring); response
+        for the mode's format (``method="truth"``: the exact inverse table of the 8-bit curve, or
+        linear for raw); vignetting; photometric scale ``FW / S`` so that fused value x scale ==
+        scene radiance (unit "relative"); identity pose; mask = the clean image circle.
+        """
+        m = mode or self._mode
+        lens = self.lens_for(m)
+        return Calibration(
+            fisheye=lens.fisheye,
+            response=self.sensor.truth_response(m.format),
+            vignetting=lens.vignetting,
+            photometric=Photometric(self.sensor.photometric_scale, "relative"),
+            pose=Pose(),
+            source="truth",
+            mask=LensMask(lens.vignetting.center, lens.clean_radius_px),
+        )
+
+    def truth_radiance(self, t: float | None = None) -> np.ndarray:
+        """Ground-truth equirect radiance at time ``t`` (default: the next frame's time)."""
+        return self._scene.radiance_equirect(self._t if t is None else t)
+
+    def render_radiance_image(self, t: float | None = None, *, housing: bool = True,
+                              mode: Mode | None = None) -> np.ndarray:
+        """Noise-free, unvignetted sensor-plane radiance (H, W, 3) float32 at time ``t``."""
+        lens = self.lens_for(mode)
+        return lens.render(self.truth_radiance(t), housing=housing)
+
+    def pixel_solid_angle(self, mode: Mode | None = None) -> np.ndarray:
+        """Solid angle (sr) of each sensor pixel's footprint (H, W) float64."""
+        return self.lens_for(mode).pixel_solid_angle()

@@ -1,0 +1,141 @@
+"""Fisheye calibration on simulated board views rendered through known KB4 lenses
+(sim.board), and the live routine fed by a frame source."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.fisheye import BoardSpec, View, board_object_points, calibrate_views, detect_board
+from calibration.live import LiveFisheyeCalibration
+from calibration.model import FisheyeModel
+from sim.board import BoardRenderer, random_pose, true_corners
+
+BOARD = BoardSpec(9, 6, 0.04)
+
+
+def lens(fov_deg: float) -> FisheyeModel:
+    return FisheyeModel((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),
+                        np.array([0.03, -0.01, 0.004, -0.0008]), fov_deg=fov_deg)
+
+
+def render_views(true: FisheyeModel, n: int, seed: int, max_theta: float
+                 ) -> tuple[list[View], float]:
+    """Up to ``n`` detected views with board centres up to ``max_theta`` deg off-axis, and the
+    largest true corner angle (deg) among them."""
+    rend = BoardRenderer(true, supersample=2)
+    rng = np.random.default_rng(seed)
+    views, theta_max = [], 0.0
+    for k in range(3 * n):
+        if len(views) == n:
+            break
+        pose = random_pose(rng, BOARD.cols, BOARD.rows, BOARD.square,
+                           theta_deg=rng.uniform(0, max_theta), distance=rng.uniform(0.35, 0.5))
+        img = rend.render(pose, BOARD.cols, BOARD.rows, BOARD.square, noise=2.0, rng=rng)
+        c = detect_board(img, BOARD, accurate=True)
+        if c is None:
+            continue
+        tc = true_corners(true, pose, BOARD.cols, BOARD.rows, BOARD.square)
+        # Detection is right up to the board's 180-degree symmetry.
+        assert min(np.abs(c - tc).max(), np.abs(c[::-1] - tc).max()) < 1.0
+        d = true.unproject(tc)
+        theta_max = max(theta_max, float(np.degrees(np.arccos(d[:, 2].min()))))
+        views.append(View(f"sim{k:03d}", c, board_object_points(BOARD)))
+    return views, theta_max
+
+
+def reprojection_vs_truth(est: FisheyeModel, true: FisheyeModel, theta_max_deg: float) -> tuple[float, float]:
+    """(max, rms) pixel distance between estimated and true projections of directions up to
+    ``theta_max_deg`` (72 azimuths x 60 polar angles)."""
+    th = np.radians(np.linspace(0, theta_max_deg, 60))
+    ph = np.linspace(0, 2 * np.pi, 72, endpoint=False)
+    TH, PH = np.meshgrid(th, ph)
+    d = np.stack([np.sin(TH) * np.cos(PH), np.sin(TH) * np.sin(PH), np.cos(TH)], axis=-1)
+    err = np.linalg.norm(est.project(d) - true.project(d), axis=-1)
+    return float(err.max()), float(np.sqrt(np.mean(err**2)))
+
+
+@pytest.fixture(scope="module")
+def sim190() -> tuple[FisheyeModel, list[View], float]:
+    true = lens(190.0)
+    views, theta_max = render_views(true, 24, seed=1, max_theta=90.0)
+    assert len(views) >= 20
+    return true, views, theta_max
+
+
+@pytest.mark.slow
+def test_sim_lens_recovered(sim190: tuple[FisheyeModel, list[View], float]) -> None:
+    true, views, theta_max = sim190
+    res = calibrate_views(views, true.image_size)
+    K = res.model.K
+    assert abs(K[0, 0] / true.K[0, 0] - 1) <= 0.003 and abs(K[1, 1] / true.K[1, 1] - 1) <= 0.003
+    worst, rms = reprojection_vs_truth(res.model, true, theta_max)
+    print(f"sim 190: f err {100 * (K[0, 0] / true.K[0, 0] - 1):.3f}% / {100 * (K[1, 1] / true.K[1, 1] - 1):.3f}%, "
+          f"reprojection vs truth up to {theta_max:.1f} deg: max {worst:.3f} px rms {rms:.3f} px, "
+          f"rms {res.rms_px:.3f} px, used {len(res.used)}, rejected {len(res.rejected)}")
+    assert rms <= 0.2 and worst <= 0.35
+    assert res.rms_px < 0.3
+    # The check can fail: the true model with a 0.5 % focal error is far outside the bound.
+    off = FisheyeModel(true.image_size, true.K * np.array([[1.005, 1, 1], [1, 1.005, 1], [1, 1, 1]]), true.D)
+    assert reprojection_vs_truth(off, true, theta_max)[1] > 0.5
+
+
+@pytest.mark.slow
+def test_stronger_than_180_lens_converges_through_rejection() -> None:
+    true = lens(220.0)
+    views, theta_max = render_views(true, 24, seed=5, max_theta=105.0)
+    assert theta_max > 95  # some boards really sit behind the image plane
+    messages: list[str] = []
+    res = calibrate_views(views, true.image_size, progress=messages.append)
+    assert res.rejected and messages  # rejection happened and was reported
+    K = res.model.K
+    assert np.all(np.isfinite(res.model.D)) and abs(K[0, 0] / true.K[0, 0] - 1) <= 0.01
+    assert res.rms_px < 0.5 and res.model.fov_deg > 180
+
+
+def test_degenerate_view_sets_fail_cleanly() -> None:
+    true = lens(190.0)
+    obj = board_object_points(BOARD)
+    rng = np.random.default_rng(0)
+    # Random corner soup: OpenCV cannot make sense of it; a ValueError, never a crash.
+    soup = [View(f"soup{i}", rng.uniform(0, 640, (BOARD.n_corners, 2)), obj) for i in range(6)]
+    with pytest.raises(ValueError, match="calibration failed"):
+        calibrate_views(soup, true.image_size)
+    # A blank frame has no board.
+    assert detect_board(np.zeros((640, 640), np.uint8), BOARD) is None
+
+
+def test_live_routine_accepts_still_views_that_add_coverage() -> None:
+    true = lens(190.0)
+    rend = BoardRenderer(true, supersample=2)
+    rng = np.random.default_rng(3)
+    live = LiveFisheyeCalibration(BOARD, true.image_size, still_px=1.0, still_frames=3, min_views=6,
+                                  target_rms=0.5, target_coverage=0.3,
+                                  image_circle=(321.3, 318.2, 329.0))
+    events: list[str] = []
+    coverage = []
+    held = 0
+    for _ in range(14):
+        if live.progress.good_enough:
+            break
+        pose = random_pose(rng, BOARD.cols, BOARD.rows, BOARD.square,
+                           theta_deg=rng.uniform(0, 75), distance=rng.uniform(0.35, 0.45))
+        # The technician moves the board in (a big step), then holds it still for 3 frames.
+        moving = type(pose)(pose.R, pose.t + np.array([0.05, 0.0, 0.0]))
+        events.append(live.feed(rend.render(moving, 9, 6, 0.04, rng=rng)))
+        for _ in range(3):
+            events.append(live.feed(rend.render(pose, 9, 6, 0.04, rng=rng)))
+        held += 1
+        coverage.append(live.progress.coverage_percent)
+    p = live.progress
+    assert "accepted" in events and p.views == events.count("accepted")
+    assert p.views >= 6 and p.good_enough and p.rms_px is not None and p.rms_px < 0.5
+    assert coverage == sorted(coverage)  # coverage never goes down
+    # Holding the same pose again adds nothing new once its cells are full.
+    same = live.views[-1]
+    for _ in range(8):
+        live.views.append(View("dup", same.corners, same.object_points))
+    pose_img = None
+    assert live.feed(np.zeros((640, 640), np.uint8)) == "no board"
+    assert pose_img is None and p.frames == len(events) + 1
+    assert set(p.to_json()) >= {"views", "coverage_percent", "rms_px", "good_enough"}

@@ -1,0 +1,166 @@
+"""``lightprobe fuse``: the real piccante stack, a calibrated response, and bad input (exit 2)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import OpenEXR
+import pytest
+
+from calibration.model import Calibration, Response
+from device.cli import main
+from device.hdr import FusionSettings
+from device.hdr.cli import estimate_response
+
+STACK = "exposure_stacks/piccante_room_lamp"
+
+
+def read_exr(path: Path) -> tuple[np.ndarray, dict[str, object]]:
+    """Read back with the OpenEXR package itself (not our reader)."""
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.parts[0].channels
+        img = np.stack([ch[c].pixels for c in "RGB"], axis=-1)
+        return img, dict(f.header())
+
+
+@pytest.fixture(scope="module")
+def stack(shared_data: Path) -> tuple[list[Path], list[float], Path]:
+    d = shared_data / STACK
+    times_file = d / "exposure_times_seconds.txt"
+    rows = [ln.split() for ln in times_file.read_text().splitlines() if ln.strip()]
+    return [d / r[0] for r in rows], [float(r[1]) for r in rows], times_file
+
+
+@pytest.fixture(scope="module")
+def fused_room(stack: tuple[list[Path], list[float], Path], tmp_path_factory: pytest.TempPathFactory
+               ) -> tuple[np.ndarray, dict[str, object], list[np.ndarray], list[float]]:
+    images, times, times_file = stack
+    out = tmp_path_factory.mktemp("fuse") / "room.exr"
+    assert main(["fuse", *map(str, images), "--times-file", str(times_file), "--out", str(out)]) == 0
+    img, header = read_exr(out)
+    frames = [cv2.imread(str(p))[..., ::-1] for p in images]
+    return img, header, frames, times
+
+
+def test_real_stack_reads_back_with_metadata(fused_room: tuple) -> None:
+    img, header, frames, times = fused_room
+    assert img.dtype == np.float32
+    assert img.shape == frames[0].shape
+    assert np.isfinite(img).all()
+    assert (img >= 0).all()
+    assert header["unit"] == "relative"
+    assert [float(t) for t in str(header["exposures"]).split(",")] == pytest.approx(times)
+
+
+def test_real_stack_dynamic_range_and_lamp_not_clipped(fused_room: tuple) -> None:
+    img, header, frames, times = fused_room
+    lum = img.mean(axis=-1)
+    lo, hi = np.percentile(lum[lum > 0], [0.01, 99.99])
+    assert hi / lo >= 1e4
+    # The lamp: pixels near saturation in the second-shortest exposure (1/1000 s)
+    order = np.argsort(times)
+    lamp = frames[order[1]].max(axis=-1) >= 250
+    assert lamp.sum() > 100
+    n_sat = int(header["saturated_pixels"])
+    core = (frames[order[0]] >= int(np.ceil(FusionSettings().sat_frac * 255))).any(axis=-1)
+    # Only pixels clipped even at 1/4000 s may be flagged: a handful in the filament
+    assert n_sat <= core.sum() < 0.1 * lamp.sum()
+    # Unclipped: nearly all the lamp is resolved, and it is brighter than anything the stack
+    # without its shortest exposure could represent (E(z_sat) / t of the second-shortest frame)
+    resp = estimate_response(frames, times)
+    z_sat = int(np.ceil(FusionSettings().sat_frac * 255))
+    bound2 = resp.inverse[z_sat] / times[order[1]]
+    bound1 = resp.inverse[z_sat] / times[order[0]]
+    # Pixels at the documented lower bound (flagged ones, and any at the same clip value)
+    sat_mask = (img >= bound1 * (1 - 1e-4)).any(axis=-1)
+    assert sat_mask.sum() >= n_sat
+    resolved = lamp & ~sat_mask
+    assert resolved.sum() >= 0.95 * lamp.sum()
+    assert np.any(img[resolved] > 2 * bound2)
+    assert lum[resolved].max() > 1000 * np.median(lum)
+
+
+def test_times_on_the_command_line_and_a_calibrated_response(tmp_path: Path) -> None:
+    """A synthetic stack from a known gamma response, fused with that response as a file."""
+    rng = np.random.default_rng(4)
+    x = np.exp(rng.uniform(np.log(0.02), np.log(1.0), (40, 60, 3)))
+    times = ["1/50", "0.08", "0.32"]
+    tv = [1 / 50, 0.08, 0.32]
+    z = np.arange(256) / 255.0
+    resp = Response("table", 8, np.repeat((z**2.2)[:, None], 3, axis=1), "truth")
+    paths = []
+    for i, t in enumerate(tv):
+        img = np.rint(255 * np.clip(x * t * 3, 0, 1) ** (1 / 2.2)).astype(np.uint8)
+        paths.append(tmp_path / f"f{i}.png")
+        cv2.imwrite(str(paths[-1]), img[..., ::-1])
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps(Calibration(response=resp).to_json()))
+    out = tmp_path / "out.exr"
+    assert main(["fuse", *map(str, paths), "--times", *times, "--response", str(cal), "--out", str(out)]) == 0
+    img, header = read_exr(out)
+    assert header["response"] == "truth"
+    ok = (x * 3 * tv[-1] > 0.02)
+    rel = np.abs(img / (3 * x) - 1)[ok]
+    assert np.median(rel) < 0.005
+
+
+@pytest.fixture
+def small_stack(tmp_path: Path) -> list[Path]:
+    paths = []
+    for i in range(2):
+        p = tmp_path / f"s{i}.png"
+        cv2.imwrite(str(p), np.full((8, 10, 3), 40 * (i + 1), np.uint8))
+        paths.append(p)
+    return paths
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = main(["fuse", *argv])
+    return code, capsys.readouterr().err
+
+
+def test_bad_inputs_exit_2_naming_the_culprit(small_stack: list[Path], tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    a, b = map(str, small_stack)
+    out = str(tmp_path / "o.exr")
+    junk = tmp_path / "junk.jpg"
+    junk.write_text("not an image")
+    big = tmp_path / "big.png"
+    cv2.imwrite(str(big), np.zeros((9, 10, 3), np.uint8))
+    cases = [
+        ([a, str(junk), "--times", "0.1", "0.2", "--out", out], "junk.jpg"),
+        ([a, str(tmp_path / "missing.png"), "--times", "0.1", "0.2", "--out", out], "missing.png"),
+        ([a, str(big), "--times", "0.1", "0.2", "--out", out], "big.png"),
+        ([a, b, "--out", out], "--times"),
+        ([a, b, "--times", "0.1", "0", "--out", out], "'0'"),
+        ([a, b, "--times", "0.1", "-3", "--out", out], "'-3'"),
+        ([a, b, "--times", "0.1", "abc", "--out", out], "'abc'"),
+        ([a, b, "--times", "0.1", "--out", out], "2 images but 1 exposure times"),
+        ([a, b, "--times-file", str(junk), "--out", out], "junk.jpg"),
+        ([a, b, "--times", "0.1", "0.2", "--response", str(junk), "--out", out], "junk.jpg"),
+        ([a, b, "--times", "0.1", "0.2", "--out", str(tmp_path / "o.png")], "o.png"),
+    ]
+    for argv, culprit in cases:
+        code, err = _run(argv, capsys)
+        assert code == 2, (argv, err)
+        assert culprit in err, (culprit, err)
+        assert len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_console_script_exit_code(small_stack: list[Path], tmp_path: Path) -> None:
+    exe = Path(sys.executable).parent / "lightprobe"
+    a, b = map(str, small_stack)
+    r = subprocess.run([str(exe), "fuse", a, b, "--times", "0.1", "--out", str(tmp_path / "o.exr")],
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 2
+    assert "exposure times" in r.stderr
+    r = subprocess.run([str(exe), "fuse", a, b, "--times", "0.1", "0.2", "--out", str(tmp_path / "o.exr")],
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "o.exr").is_file()

@@ -1,0 +1,310 @@
+"""Projection: fisheye radiance -> polar / equirect / HEALPix maps, area-correct and energy-true.
+
+A QVGA lens with vignetting, a photometric scale and an image circle clipped by the sensor's top
+and bottom edges keeps the table build short; the end-to-end energy acceptance against the
+simulator (VGA, six shared maps) is in ``test_projection_energy.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from calibration.model import Calibration, FisheyeModel, Photometric, Vignetting
+from device.errors import InputError
+from device.healpix import npix, pix2vec_nest, vec2pix_nest
+from device.projection import (
+    Projector,
+    fisheye_pixel_solid_angles,
+    fisheye_valid_mask,
+    spherical_triangle_solid_angle,
+)
+from device.sphere import CAMERA_TO_PROBE, directions_from_angles
+
+W, H = 320, 240
+F = 76.0
+D = np.array([0.01, -0.004, 0.0, 0.0])
+SCALE = 2.0
+MAPS = ("polar", "equirect", "healpix")
+
+
+def _calibration(vignetting: bool = True) -> Calibration:
+    K = np.array([[F, 0.0, (W - 1) / 2], [0.0, F, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    fe = FisheyeModel((W, H), K, D, fov_deg=185.0)
+    vig = Vignetting(((W - 1) / 2, (H - 1) / 2), 118.0, (-0.25, -0.1, 0.0)) if vignetting else None
+    return Calibration(fisheye=fe, vignetting=vig, photometric=Photometric(SCALE, "relative"))
+
+
+@pytest.fixture(scope="module")
+def proj() -> Projector:
+    return Projector(_calibration(), equirect_height=128, nside=32)
+
+
+def _measured(p: Projector, radiance: np.ndarray) -> np.ndarray:
+    """The fused image a camera with this calibration reports for a true sensor-plane radiance."""
+    cal = p.calibration
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    v = cal.vignetting.factor(uu, vv) if cal.vignetting is not None else 1.0
+    return (radiance * (v / SCALE)[..., None]).astype(np.float32)
+
+
+def _energy(p: Projector, maps, name: str) -> np.ndarray:
+    """Integral of radiance x solid angle of one map (float64 per channel)."""
+    img = getattr(maps, name).reshape(-1, 3).astype(np.float64)
+    cov = p._tables[name].coverage.astype(np.float64)  # partly seen pixels hold the seen mean
+    if name == "equirect":  # the lower-hemisphere policy already blended coverage in
+        cov = np.where(np.isin(np.arange(cov.size) // (2 * p.equirect_height), p._fill_rows),
+                       1.0, cov)
+    return (p.solid_angle(name)[:, None] * cov[:, None] * img).sum(axis=0)
+
+
+def _jacobian(theta: np.ndarray) -> np.ndarray:
+    """Solid angle per px^2 of the KB4 lens, analytic: sin t / (t_d t_d'(t)) / f^2."""
+    t2 = theta * theta
+    td = theta * (1 + t2 * (D[0] + t2 * D[1]))
+    tdp = 1 + t2 * (3 * D[0] + t2 * 5 * D[1])
+    return np.sin(theta) / (td * tdp) / F**2
+
+
+def _theta_of(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    rd = np.hypot(u - (W - 1) / 2, v - (H - 1) / 2) / F
+    t = rd.copy()
+    for _ in range(30):  # Newton on t (1 + k1 t^2 + k2 t^4) = rd
+        t2 = t * t
+        t -= (t * (1 + t2 * (D[0] + t2 * D[1])) - rd) / (1 + t2 * (3 * D[0] + t2 * 5 * D[1]))
+    return t
+
+
+def _lamp(u0: float, v0: float, diameter: float, level: float, n: int = 32
+          ) -> tuple[np.ndarray, float]:
+    """A uniform disc rendered in the sensor plane (box-filtered pixels) and its exact energy."""
+    img = np.zeros((H, W, 3), np.float32)
+    r = diameter / 2
+    off = (np.arange(n) + 0.5) / n - 0.5
+    energy = 0.0
+    for iv in range(int(np.floor(v0 - r)) - 1, int(np.ceil(v0 + r)) + 2):
+        for iu in range(int(np.floor(u0 - r)) - 1, int(np.ceil(u0 + r)) + 2):
+            su = iu + off[None, :]
+            sv = iv + off[:, None]
+            inside = np.hypot(su - u0, sv - v0) <= r
+            img[iv, iu] = level * inside.mean()
+            energy += level * (_jacobian(_theta_of(su, sv)) * inside).sum() / n**2
+    return img, energy
+
+
+def _pixel_of(d_probe: np.ndarray, p: Projector) -> np.ndarray:
+    return p.calibration.fisheye.project(np.asarray(d_probe) @ CAMERA_TO_PROBE)
+
+
+# -- pure helpers ---------------------------------------------------------------------------------
+def test_octant_triangle_is_an_eighth_of_the_sphere() -> None:
+    e = np.eye(3)
+    assert spherical_triangle_solid_angle(e[0], e[1], e[2]) == pytest.approx(np.pi / 2, rel=1e-12)
+    assert spherical_triangle_solid_angle(e[0], e[0], e[2]) == pytest.approx(0.0, abs=1e-15)
+
+
+def test_pixel_solid_angles_match_the_lens_jacobian() -> None:
+    fe = _calibration().fisheye
+    omega = fisheye_pixel_solid_angles(fe, subdiv=4)
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    jac = _jacobian(np.maximum(_theta_of(uu, vv), 1e-9))
+    inner = fisheye_valid_mask(fe, 5.0)
+    rel = omega[inner] / jac[inner] - 1
+    assert np.max(np.abs(rel)) < 2e-3  # the Jacobian is a point value, omega the footprint
+    # The hemisphere theta <= 90 deg holds 2 pi sr (staircase edge ~ a pixel ring)
+    hemi = _theta_of(uu, vv) <= np.pi / 2
+    assert omega[hemi].sum() == pytest.approx(2 * np.pi, rel=0.02)
+
+
+def test_tables_are_balanced_and_the_polar_map_is_covered(proj: Projector) -> None:
+    for name in MAPS:
+        assert proj.balance_residual(name) < 1e-3
+    cov = proj.coverage_polar
+    assert cov.shape == (90, 360)
+    assert cov.dtype == np.float32
+    assert np.all(cov[:80] == 1.0)
+    # The image circle is clipped by the sensor's bottom/top edge at theta ~90.5 deg around
+    # azimuths 0 and 180 deg; to the sides the lens sees to 92 deg (fov / 2 - ring margin)
+    eq = proj.coverage_equirect  # row 64 covers theta 90 .. 91.4 deg
+    assert eq[64, 0] < 0.6
+    assert eq[64, 128] < 0.6
+    assert eq[64, 64] == 1.0
+    assert eq[66, 64] == 0.0
+    assert np.all((proj.coverage_healpix >= 0) & (proj.coverage_healpix <= 1))
+
+
+# -- (2) constant radiance -----------------------------------------------------------------------
+def test_constant_radiance_gives_constant_maps(proj: Projector) -> None:
+    level = 3.5
+    maps = proj.project(_measured(proj, np.full((H, W, 3), level, np.float32)))
+    assert maps.polar.shape == (90, 360, 3)
+    assert maps.equirect.shape == (128, 256, 3)
+    assert maps.healpix.shape == (npix(32), 3)
+    assert maps.nside == 32
+    for name, cov in (("polar", maps.coverage_polar), ("healpix", maps.coverage_healpix),
+                      ("equirect", maps.coverage_equirect)):
+        img = getattr(maps, name).reshape(-1, 3)
+        seen = cov.ravel() >= 1.0
+        np.testing.assert_allclose(img[seen], level, rtol=2e-5)
+        if name != "equirect":  # mean radiance of the seen part where partly covered
+            np.testing.assert_allclose(img[cov.ravel() > 0], level, rtol=2e-5)
+    # Integral = L x covered solid angle = L x the lens's valid solid angle
+    lens_omega = (proj.pixel_solid_angle * proj.lens_mask).sum()
+    for name in ("healpix", "equirect"):
+        np.testing.assert_allclose(_energy(proj, maps, name), level * lens_omega, rtol=1e-4)
+
+
+# -- (1) a lamp three pixels wide keeps its energy ------------------------------------------------
+@pytest.mark.parametrize(("theta_deg", "phi_deg"), [(0.3, 10.0), (20.0, 90.0), (47.0, 200.0),
+                                                    (84.0, 300.0), (89.0, 90.0), (90.4, 45.0)])
+def test_lamp_three_pixels_wide_keeps_its_energy(proj: Projector, theta_deg: float,
+                                                 phi_deg: float) -> None:
+    d = directions_from_angles(np.deg2rad(theta_deg), np.deg2rad(phi_deg))
+    u0, v0 = _pixel_of(d, proj) + np.array([0.23, -0.17])  # not centred on a pixel
+    radiance, energy = _lamp(u0, v0, 3.0, 1000.0)  # inside the valid circle (92 deg) throughout
+    maps = proj.project(_measured(proj, radiance))
+    names = MAPS if theta_deg < 88 else ("equirect", "healpix")
+    for name in names:
+        e = _energy(proj, maps, name)
+        np.testing.assert_allclose(e, energy, rtol=0.01, err_msg=name)
+
+
+# -- (3) directions ------------------------------------------------------------------------------
+def test_image_axes_map_to_the_documented_azimuths(proj: Projector) -> None:
+    cx, cy = (W - 1) / 2, (H - 1) / 2
+    img = np.zeros((H, W, 3), np.float32)
+    img[round(cy) + 40, round(cx)] = 1.0  # below the centre: azimuth 0 (the front mark)
+    p0 = proj.project_polar(img)[..., 0]
+    r, c = np.unravel_index(np.argmax(p0), p0.shape)
+    assert c in (0, 359)
+    assert 20 < r < 45
+    img[:] = 0
+    img[round(cy), round(cx) + 40] = 1.0  # right of the centre: azimuth 90 deg
+    p1 = proj.project_polar(img)[..., 0]
+    r, c = np.unravel_index(np.argmax(p1), p1.shape)
+    assert c in (89, 90)
+    assert 20 < r < 45
+
+
+@pytest.mark.parametrize(("theta_deg", "phi_deg"), [(12.5, 33.5), (45.5, 180.5), (70.5, 260.5),
+                                                    (85.5, 5.5)])
+def test_spot_lands_at_its_direction(proj: Projector, theta_deg: float, phi_deg: float) -> None:
+    d = directions_from_angles(np.deg2rad(theta_deg), np.deg2rad(phi_deg))
+    u, v = _pixel_of(d, proj)
+    radiance, _ = _lamp(u, v, 1.2, 50.0)
+    maps = proj.project(_measured(proj, radiance))
+    # Energy centroids point at d (a wrong frame or azimuth convention is off by tens of degrees)
+    pol = maps.polar[..., 1].astype(np.float64)
+    theta = np.deg2rad(np.arange(90) + 0.5)[:, None]
+    phi = np.deg2rad(np.arange(360) + 0.5)[None, :]
+    w = pol * proj.solid_angle("polar").reshape(90, 360)
+    cen_p = (directions_from_angles(theta, phi) * w[..., None]).sum(axis=(0, 1))
+    hp = maps.healpix[:, 1].astype(np.float64)
+    cen_h = (pix2vec_nest(32, np.arange(npix(32))) * hp[:, None]).sum(axis=0)
+    for cen, tol in ((cen_p, 0.5), (cen_h, 1.0)):  # polar pixels 1 deg, HEALPix ~1.8 deg
+        cen /= np.linalg.norm(cen)
+        assert np.degrees(np.arccos(np.clip(cen @ d, -1, 1))) < tol
+    # The brightest HEALPix pixel contains d or touches its pixel
+    best = pix2vec_nest(32, int(np.argmax(hp)))
+    assert np.degrees(np.arccos(np.clip(best @ d, -1, 1))) < 2.0
+    assert np.argmax(hp) == vec2pix_nest(32, d) or hp[vec2pix_nest(32, d)] > 0
+
+
+# -- (4) invalid pixels ------------------------------------------------------------------------------
+def test_nan_inf_and_masked_pixels_do_not_leak(proj: Projector) -> None:
+    rng = np.random.default_rng(7)
+    level = 2.0
+    img = _measured(proj, np.full((H, W, 3), level, np.float32))
+    img[rng.random((H, W)) < 0.02] = np.nan
+    img[rng.random((H, W)) < 0.01] = np.inf
+    valid = np.ones((H, W), bool)
+    valid[100:120, 150:170] = False
+    img[100:120, 150:170] = 1e6  # a masked blob must not appear
+    maps = proj.project(img, valid)
+    invalid = ndimage.binary_dilation(~valid | ~np.isfinite(img).all(axis=2),
+                                      structure=np.ones((3, 3), bool), iterations=2)
+    for name, cov in (("polar", maps.coverage_polar), ("healpix", maps.coverage_healpix)):
+        out = getattr(maps, name).reshape(-1, 3)
+        assert np.isfinite(out).all()
+        seen = cov.ravel() > 0
+        # Renormalised over the valid contributions ...
+        zero = out[:, 0] == 0
+        np.testing.assert_allclose(out[seen & ~zero], level, rtol=1e-5)
+        # ... and 0 only where every contributor is invalid (near an invalid fisheye pixel)
+        dirs = (directions_from_angles(np.deg2rad(np.arange(90) + 0.5)[:, None],
+                                       np.deg2rad(np.arange(360) + 0.5)[None, :]).reshape(-1, 3)
+                if name == "polar" else pix2vec_nest(32, np.arange(npix(32))))
+        uv = np.rint(_pixel_of(dirs[seen & zero], proj)).astype(int)
+        assert invalid[uv[:, 1], uv[:, 0]].all()
+    assert np.isfinite(maps.equirect).all()
+    assert maps.equirect.max() < 2 * level
+
+
+def test_all_black_and_a_single_hot_pixel(proj: Projector) -> None:
+    zero = proj.project(np.zeros((H, W, 3), np.float32))
+    for name in MAPS:
+        assert not np.any(getattr(zero, name))
+    img = np.zeros((H, W, 3), np.float32)
+    img[60, 200] = 3.0e38  # full scale float32: must not overflow to inf
+    hot = proj.project(img)
+    for name in MAPS:
+        assert np.isfinite(getattr(hot, name)).all()
+    img[60, 200] = 1e4
+    hot = proj.project(img)
+    g = proj.pixel_gain.reshape(H, W)[60, 200]
+    expect = 1e4 * g * proj.pixel_solid_angle[60, 200]
+    for name in ("equirect", "healpix", "polar"):
+        np.testing.assert_allclose(_energy(proj, hot, name), expect, rtol=1e-3, err_msg=name)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), exponent=st.floats(-6, 6))
+def test_energy_is_conserved_for_any_image(proj: Projector, seed: int, exponent: float) -> None:
+    rng = np.random.default_rng(seed)
+    img = (rng.random((H, W, 3)) ** 4 * 10.0**exponent).astype(np.float32)
+    maps = proj.project(img)
+    expect = ((proj.pixel_gain * proj.pixel_solid_angle.ravel())[:, None]
+              * img.reshape(-1, 3).astype(np.float64)).sum(axis=0)
+    for name in ("equirect", "healpix"):
+        np.testing.assert_allclose(_energy(proj, maps, name), expect, rtol=2e-4)
+
+
+# -- lower hemisphere policies --------------------------------------------------------------------
+@pytest.mark.parametrize("lower", ["zero", "mirror", "mean-horizon"])
+def test_lower_hemisphere_policies(lower: str) -> None:
+    cal = _calibration(vignetting=False)
+    p = Projector(cal, polar_height=10, equirect_height=64, nside=8, lower=lower,
+                  ground_albedo=0.25)
+    theta = np.pi * (np.arange(64) + 0.5) / 64
+    ramp = np.zeros((H, W, 3), np.float32)
+    ramp[:] = np.arange(H, dtype=np.float32)[:, None, None] / SCALE + 1  # varies with elevation
+    eq = p.project_equirect(ramp)
+    below = theta > np.deg2rad(95)
+    assert np.isfinite(eq).all()
+    if lower == "zero":
+        assert not np.any(eq[below])
+    elif lower == "mirror":
+        rows = np.flatnonzero(below)
+        np.testing.assert_allclose(eq[rows], 0.25 * eq[63 - rows], rtol=1e-6)
+    else:
+        band = p._horizon_rows
+        mean = eq[band].reshape(-1, 3).mean(axis=0)
+        np.testing.assert_allclose(eq[below], np.broadcast_to(mean, eq[below].shape), rtol=1e-5)
+        assert np.ptp(eq[below]) < 1e-4 * eq[below].max()
+
+
+# -- bad input -----------------------------------------------------------------------------------
+def test_bad_input_raises_input_error(proj: Projector) -> None:
+    with pytest.raises(InputError, match="shape"):
+        proj.project(np.zeros((H, W + 1, 3), np.float32))
+    with pytest.raises(InputError, match="valid"):
+        proj.project(np.zeros((H, W, 3), np.float32), np.ones((H, 3), bool))
+    with pytest.raises(InputError, match="fisheye"):
+        Projector(Calibration())
+    with pytest.raises(InputError, match="lower"):
+        Projector(_calibration(), lower="sky")
+    with pytest.raises(InputError, match="nside"):
+        Projector(_calibration(), nside=48)

@@ -1,0 +1,293 @@
+"""Q2-Tree sampler: incremental split-merge = fresh build, energy, exact counts, degenerate maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device.errors import InputError
+from device.healpix import equirect_to_healpix, vec2pix_nest
+from device.imageio import read_hdr_image
+from device.sampling.base import LightSet
+from device.sampling.q2tree import Q2TreeSampler, auto_nside, nodes_to_uniq, uniq_to_nodes
+from device.sampling.registry import make_sampler
+from device.sphere import equirect_integral, equirect_solid_angle
+
+NSIDE = 16
+
+
+def _random_map(rng: np.random.Generator, nside: int = NSIDE) -> np.ndarray:
+    """Log-normal radiance with a few very hot pixels (a lamp, a sun)."""
+    m = rng.lognormal(0.0, 2.0, (12 * nside * nside, 3)).astype(np.float32)
+    hot = rng.integers(0, len(m), int(rng.integers(0, 5)))
+    m[hot] *= np.float32(1e4)
+    return m
+
+
+def _assert_same_lights(a: LightSet, b: LightSet) -> None:
+    for field in ("directions", "rgb", "solid_angle", "ids"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+
+
+@pytest.fixture(scope="module")
+def studio(envmap_paths: dict[str, Path]) -> np.ndarray:
+    return read_hdr_image(envmap_paths["studio_small_03_1k.hdr"])
+
+
+# -- the core property: incremental updates with zero hysteresis == a fresh build -----------------
+@pytest.mark.parametrize("importance", ["integral", "mean"])
+@pytest.mark.parametrize("placement", ["centroid", "jitter"])
+def test_incremental_updates_equal_fresh_build(importance: str, placement: str) -> None:
+    rng = np.random.default_rng(2005)
+    for _ in range(12):
+        inc = Q2TreeSampler(importance=importance, placement=placement, hysteresis=0.0)
+        m = _random_map(rng)
+        for _step in range(6):
+            count = int(rng.integers(1, 900))
+            # small multiplicative drift or a completely new frame
+            if rng.random() < 0.6:
+                m = (m * rng.lognormal(0.0, 0.3, m.shape)).astype(np.float32)
+            else:
+                m = _random_map(rng)
+            got = inc.sample_healpix(m, NSIDE, count)
+            fresh = Q2TreeSampler(importance=importance, placement=placement)
+            want = fresh.sample_healpix(m, NSIDE, count)
+            assert inc.stats["mode"] == ("incremental" if _step else "full")
+            np.testing.assert_array_equal(inc.split_nodes, fresh.split_nodes)
+            _assert_same_lights(got, want)
+            assert len(got) == count
+
+
+def test_incremental_equals_fresh_on_real_map_sequence(studio: np.ndarray) -> None:
+    """A slowly brightening lamp region and a moving gain, on a real map (equirect path)."""
+    inc = Q2TreeSampler(nside_max=64, hysteresis=0.0)
+    rng = np.random.default_rng(7)
+    for k in range(5):
+        frame = studio * np.float32(1.0 + 0.05 * k)
+        frame[100:140, 300 + 10 * k:360 + 10 * k] *= np.float32(3.0)
+        count = int(rng.choice([64, 200, 256, 257, 300]))
+        got = inc.sample(frame, count)
+        want = Q2TreeSampler(nside_max=64).sample(frame, count)
+        _assert_same_lights(got, want)
+
+
+def test_unchanged_frame_needs_no_swaps_and_hysteresis_limits_restructuring() -> None:
+    rng = np.random.default_rng(3)
+    m = _random_map(rng)
+    s0 = Q2TreeSampler(hysteresis=0.0)
+    s1 = Q2TreeSampler(hysteresis=0.5)
+    for s in (s0, s1):
+        s.sample_healpix(m, NSIDE, 256)
+        s.sample_healpix(m, NSIDE, 256)
+        assert s.stats["mode"] == "incremental"
+        assert s.stats["splits"] == s.stats["merges"] == 0
+    swaps = {0.0: 0, 0.5: 0}
+    for _ in range(10):
+        m = (m * rng.lognormal(0.0, 0.2, m.shape)).astype(np.float32)
+        for s in (s0, s1):
+            ls = s.sample_healpix(m, NSIDE, 256)
+            assert len(ls) == 256
+            swaps[s.hysteresis] += s.stats["splits"]
+    assert swaps[0.5] < swaps[0.0]
+    assert swaps[0.0] > 0
+
+
+def test_count_changes_between_frames_are_incremental() -> None:
+    rng = np.random.default_rng(11)
+    m = _random_map(rng)
+    s = Q2TreeSampler(hysteresis=0.0)
+    for count in (300, 100, 13, 1000, 12, 5, 400):
+        ls = s.sample_healpix(m, NSIDE, count)
+        assert len(ls) == count
+        want = Q2TreeSampler().sample_healpix(m, NSIDE, count)
+        _assert_same_lights(ls, want)
+
+
+# -- energy, counts, directions, ids --------------------------------------------------------------
+@pytest.mark.parametrize("count", [1, 5, 11, 12, 13, 14, 15, 64, 256, 1000, 3001])
+def test_energy_exact_counts_unit_directions(studio: np.ndarray, count: int) -> None:
+    s = Q2TreeSampler(nside_max=64)
+    ls = s.sample(studio, count)
+    assert len(ls) == count
+    total = equirect_integral(studio)
+    np.testing.assert_allclose(ls.total, total, rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(ls.directions, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(ls.solid_angle.sum(), 4 * np.pi, rtol=1e-12)
+    assert ls.ids is not None
+    assert len(np.unique(ls.ids)) == count
+    assert np.all(ls.rgb >= 0)
+
+
+def test_every_count_from_1_to_80_is_exact() -> None:
+    m = _random_map(np.random.default_rng(5), 8)
+    s = Q2TreeSampler()
+    for count in range(1, 81):
+        ls = s.sample_healpix(m, 8, count)
+        assert len(ls) == count
+        np.testing.assert_allclose(ls.total, m.astype(np.float64).sum(0) * 4 * np.pi / len(m),
+                                   rtol=1e-12)
+
+
+def test_leaf_lights_lie_inside_their_leaf_and_ids_are_nuniq() -> None:
+    m = _random_map(np.random.default_rng(9))
+    for placement in ("jitter", "centroid"):
+        s = Q2TreeSampler(placement=placement)
+        ls = s.sample_healpix(m, NSIDE, 300)  # 12 + 3 * 96: no regrouping
+        assert ls.ids is not None
+        level, index = uniq_to_nodes(ls.ids)
+        np.testing.assert_array_equal(nodes_to_uniq(level, index), ls.ids)
+        for k in np.unique(level):
+            sel = level == k
+            np.testing.assert_array_equal(vec2pix_nest(1 << int(k), ls.directions[sel]), index[sel])
+        np.testing.assert_allclose(ls.solid_angle, 4 * np.pi / (12 * 4.0**level))
+        lv, ix = s.to_nodes()
+        np.testing.assert_array_equal(nodes_to_uniq(lv, ix), np.sort(ls.ids))
+
+
+def test_jitter_point_stays_fixed_while_leaf_survives() -> None:
+    rng = np.random.default_rng(21)
+    m = _random_map(rng)
+    s = Q2TreeSampler(placement="jitter", hysteresis=0.2, seed=4)
+    a = s.sample_healpix(m, NSIDE, 300)
+    b = s.sample_healpix((m * rng.lognormal(0, 0.5, m.shape)).astype(np.float32), NSIDE, 300)
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    assert len(common) > 100
+    np.testing.assert_array_equal(a.directions[ia], b.directions[ib])
+    c = Q2TreeSampler(placement="jitter", seed=5).sample_healpix(m, NSIDE, 300)
+    assert not np.array_equal(a.directions, c.directions)  # the seed moves the jitter
+
+
+def test_integral_importance_concentrates_leaves_on_the_light() -> None:
+    """The hot quad gets the finest leaves; with b = 1/4 dim regions still get split."""
+    m = np.ones((12 * NSIDE * NSIDE, 3), np.float32)
+    m[1000] = 1e5
+    ls = Q2TreeSampler().sample_healpix(m, NSIDE, 120)
+    assert ls.ids is not None
+    level, _ = uniq_to_nodes(ls.ids)
+    hot = vec2pix_nest(NSIDE, ls.directions[np.argmax(ls.rgb[:, 0])])
+    assert hot == 1000
+    assert level.max() == 4
+    assert len(np.unique(level)) >= 3
+
+
+# -- degenerate maps ------------------------------------------------------------------------------
+def test_all_black_map_gives_zero_power_lights_spread_evenly() -> None:
+    img = np.zeros((64, 128, 3), np.float32)
+    ls = Q2TreeSampler().sample(img, 48)
+    assert len(ls) == 48
+    assert np.all(ls.rgb == 0)
+    assert np.all(np.isfinite(ls.directions))
+    np.testing.assert_allclose(np.linalg.norm(ls.directions, axis=1), 1.0)
+    # ties split breadth-first: 48 = 12 + 3 * 12, every base quad split once, all at level 1
+    assert ls.ids is not None
+    level, _ = uniq_to_nodes(ls.ids)
+    assert np.all(level == 1)
+    hp = Q2TreeSampler().sample_healpix(np.zeros((12 * 64, 3), np.float32), 8, 7)
+    assert len(hp) == 7
+    assert np.all(hp.rgb == 0)
+    assert np.all(np.isfinite(hp.directions))
+
+
+def test_single_hot_pixel_1e9() -> None:
+    img = np.full((128, 256, 3), 0.5, np.float32)
+    img[40, 77] = 1e9
+    s = Q2TreeSampler(nside_max=64)
+    ls = s.sample(img, 64)
+    total = equirect_integral(img)
+    np.testing.assert_allclose(ls.total, total, rtol=1e-6)
+    hot_power = 1e9 * equirect_solid_angle(128)[40, 77]
+    brightest = int(np.argmax(ls.rgb[:, 1]))
+    assert ls.rgb[brightest, 1] >= hot_power
+    assert ls.rgb[brightest, 1] < hot_power + 0.5 * 4 * np.pi / (12 * 64 * 64) * 64
+    theta, phi = np.pi * 40.5 / 128, 2 * np.pi * 77.5 / 256
+    want = np.array([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)])
+    assert np.degrees(np.arccos(min(1.0, ls.directions[brightest] @ want))) < 0.1
+    assert np.all(np.isfinite(ls.rgb))
+    assert np.all(ls.rgb >= 0)
+
+
+def test_nan_inf_and_negative_pixels_count_as_zero(studio: np.ndarray) -> None:
+    dirty = studio.copy()
+    dirty[10:20, 30:60] = np.nan
+    dirty[200, 5] = np.inf
+    dirty[300:302, 400:410] = -5.0
+    clean = dirty.copy()
+    clean[~np.isfinite(clean) | (clean < 0)] = 0.0
+    a = Q2TreeSampler(nside_max=64).sample(dirty, 200)
+    b = Q2TreeSampler(nside_max=64).sample(clean, 200)
+    _assert_same_lights(a, b)
+    assert np.all(np.isfinite(a.rgb))
+    assert np.all(np.isfinite(a.directions))
+    hp = np.ones((12 * 64, 3), np.float32)
+    hp[5] = np.nan
+    ls = Q2TreeSampler().sample_healpix(hp, 8, 30)
+    np.testing.assert_allclose(ls.total, (12 * 64 - 1) * 4 * np.pi / (12 * 64), rtol=1e-12)
+
+
+# -- inputs and plumbing --------------------------------------------------------------------------
+def test_healpix_input_conserves_the_resampled_energy(studio: np.ndarray) -> None:
+    hp = equirect_to_healpix(studio, 64)
+    ls = Q2TreeSampler().sample_healpix(hp, 64, 256)
+    np.testing.assert_allclose(ls.total, hp.astype(np.float64).sum(0) * 4 * np.pi / len(hp),
+                               rtol=1e-9)
+    np.testing.assert_allclose(ls.total, equirect_integral(studio), rtol=1e-6)
+
+
+def test_bad_input_raises_input_error() -> None:
+    s = Q2TreeSampler()
+    img = np.ones((16, 32, 3), np.float32)
+    for count in (0, -3, 2.5, True):
+        with pytest.raises(InputError):
+            s.sample(img, count)  # type: ignore[arg-type]
+    with pytest.raises(InputError):
+        s.sample(np.ones((16, 16, 3), np.float32), 10)
+    with pytest.raises(InputError):
+        s.sample_healpix(np.ones((100, 3), np.float32), 4, 10)
+    with pytest.raises(InputError):
+        s.sample_healpix(np.ones((12 * 16, 3), np.float32), 4, 12 * 16 + 1)
+    with pytest.raises(InputError):
+        Q2TreeSampler(importance="median")
+    with pytest.raises(InputError):
+        Q2TreeSampler(nside_max=100)
+
+
+def test_registry_builds_q2tree_and_json_round_trip(studio: np.ndarray) -> None:
+    s = make_sampler("q2tree", nside_max=32, peaks=True)
+    assert isinstance(s, Q2TreeSampler)
+    ls = s.sample(studio, 100)
+    d = ls.to_json()
+    assert d["method"] == "q2tree"
+    assert len(d["lights"]) == 100
+    assert all("id" in li for li in d["lights"])
+    assert isinstance(d["peaks"], list)
+    assert len(d["peaks"]) >= 1
+    back = LightSet.from_json(d)
+    np.testing.assert_array_equal(back.ids, ls.ids)
+    assert auto_nside(512) == 256
+    assert auto_nside(180) == 64
+    assert auto_nside(2) == 1
+
+
+def test_reset_forgets_the_tree() -> None:
+    m = _random_map(np.random.default_rng(1))
+    s = Q2TreeSampler()
+    s.sample_healpix(m, NSIDE, 100)
+    s.reset()
+    s.sample_healpix(m, NSIDE, 100)
+    assert s.stats["mode"] == "full"
+
+
+def test_finer_healpix_map_is_reduced_to_the_tree_level() -> None:
+    rng = np.random.default_rng(17)
+    m = _random_map(rng, 32)
+    s = Q2TreeSampler(nside_max=8)
+    ls = s.sample_healpix(m, 32, 200)
+    assert s.stats["nside"] == 8
+    np.testing.assert_allclose(ls.total, m.astype(np.float64).sum(0) * 4 * np.pi / len(m),
+                               rtol=1e-9)
+    coarse = m.astype(np.float64).reshape(-1, 16, 3).mean(axis=1)
+    want = Q2TreeSampler(nside_max=8).sample_healpix(coarse.astype(np.float32), 8, 200)
+    np.testing.assert_allclose(ls.rgb, want.rgb, rtol=1e-6)
+    np.testing.assert_array_equal(ls.ids, want.ids)

@@ -1,0 +1,354 @@
+"""The probe service on a real aiohttp server on 127.0.0.1: API, WebSocket stream, auth, bad input,
+faults. The pipeline is the test stand-in (tests/service_fakes.py) until device.pipeline exists;
+tests/test_service_sim.py runs the real pipeline on the simulator."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import numpy as np
+import pytest
+from service_fakes import FakeCamera, fake_factories, running_service, service_config
+
+from device.service.config import load_config
+from device.sphere import equirect_integral
+
+
+async def _get_json(c: aiohttp.ClientSession, url: str, **kw: Any) -> tuple[int, Any]:
+    async with c.get(url, **kw) as r:
+        return r.status, await r.json(content_type=None)
+
+
+async def test_lights_arrive_on_websocket_within_one_second(tmp_path: Path) -> None:
+    t0 = time.monotonic()
+    async with running_service(service_config(tmp_path)) as s, aiohttp.ClientSession() as c, \
+            c.ws_connect(s.api + "/stream") as ws:
+        msg = await ws.receive(timeout=1.0)
+        elapsed = time.monotonic() - t0
+        assert msg.type == aiohttp.WSMsgType.TEXT
+        d = json.loads(msg.data)
+        assert elapsed < 1.0
+        assert d["version"] == 1
+        assert d["stale"] is False
+        assert len(d["lights"]) == 64
+        assert set(d["lights"][0]) >= {"direction", "rgb", "solid_angle"}
+        # frames keep coming, in order
+        frames = [d["frame"]]
+        for _ in range(3):
+            frames.append(json.loads((await ws.receive(timeout=2.0)).data)["frame"])
+        assert frames == sorted(frames)
+        assert len(set(frames)) == 4
+
+
+async def test_read_endpoints(tmp_path: Path) -> None:
+    import cv2
+
+    from device.imageio import read_exr_header, read_hdr_image
+
+    async with running_service(service_config(tmp_path)) as s, aiohttp.ClientSession() as c:
+        await _wait_frames(c, s.api, 2)
+        code, st = await _get_json(c, s.api + "/status")
+        assert code == 200
+        assert st["health"] == "ok"
+        assert st["camera"]["state"] == "running"
+        assert st["calibration_id"] == "fakecalib0000000"
+        assert st["exposures"] == [1e-3, 1e-2]
+        assert set(st["timings"]) >= {"capture", "fusion", "projection", "sampling", "total"}
+        assert len(st["histogram"]) == 64
+        assert st["frames_skipped"] == 0
+        assert st["stale"] is False
+        code, lights = await _get_json(c, s.api + "/lights")
+        assert code == 200
+        assert len(lights["lights"]) == 64
+        # on demand: the requested method and count, energy equal to the map's integral
+        code, od = await _get_json(c, s.api + "/lights", params={"method": "pharr", "count": "18"})
+        assert code == 200
+        assert od["method"] == "pharr"
+        assert len(od["lights"]) == 18
+        async with c.get(s.api + "/probe.exr") as r:
+            assert r.status == 200
+            assert r.content_type == "image/x-exr"
+            exr = await r.read()
+        (tmp_path / "p.exr").write_bytes(exr)
+        hdr = read_exr_header(tmp_path / "p.exr")
+        assert {"unit", "probe", "timestamp", "calibration_id"} <= set(hdr)
+        img = read_hdr_image(tmp_path / "p.exr")
+        total = np.sum([li["rgb"] for li in od["lights"]], axis=0)
+        np.testing.assert_allclose(total, equirect_integral(img), rtol=1e-5)
+        async with c.get(s.api + "/probe.hdr") as r:
+            (tmp_path / "p.hdr").write_bytes(await r.read())
+        assert read_hdr_image(tmp_path / "p.hdr").shape == img.shape
+        for view in ("fisheye", "equirect"):
+            async with c.get(s.api + "/preview.jpg", params={"view": view}) as r:
+                assert r.status == 200
+                assert r.content_type == "image/jpeg"
+                jpg = cv2.imdecode(np.frombuffer(await r.read(), np.uint8), cv2.IMREAD_COLOR)
+                assert jpg is not None
+                assert jpg.ndim == 3
+        code, h = await _get_json(c, s.api + "/healthz")
+        assert code == 200
+        assert h["ok"] is True
+        async with c.get(s.url + "/") as r:
+            assert r.status == 200
+            assert "text/html" in r.content_type
+            assert "Access-Control-Allow-Origin" not in r.headers  # CORS off by default
+
+
+async def _wait_frames(c: aiohttp.ClientSession, api: str, n: int, within: float = 5.0) -> dict[str, Any]:
+    t_end = time.monotonic() + within
+    while time.monotonic() < t_end:
+        _, st = await _get_json(c, api + "/status")
+        if st["frames"] >= n:
+            return st  # type: ignore[no-any-return]
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"fewer than {n} frames in {within} s")
+
+
+BAD_REQUESTS: list[tuple[str, str, Any, dict[str, str] | None, int, str | None]] = [
+    # (method, path, body, extra headers, status, param)
+    ("GET", "/lights?count=abc", None, None, 400, "count"),
+    ("GET", "/lights?count=0", None, None, 400, "count"),
+    ("GET", "/lights?count=100000", None, None, 400, "count"),
+    ("GET", "/lights?method=bogus", None, None, 400, "method"),
+    ("GET", "/lights?colour=red", None, None, 400, "colour"),
+    ("GET", "/preview.jpg?view=side", None, None, 400, "view"),
+    ("GET", "/nothing/here", None, None, 404, "path"),
+    ("GET", "/../../etc/passwd", None, None, 404, "path"),
+    ("POST", "/status", b"{}", None, 401, "Authorization"),  # a write without a token
+    ("POST", "/status", b"{}", "auth", 405, None),
+    ("PUT", "/config", b'{"probe": {"name": "x"}}', {"Authorization": ""}, 401, "Authorization"),
+    ("PUT", "/config", b'{"probe": {"name": "x"}}', {"Authorization": "Bearer nope"}, 403, "Authorization"),
+    ("PUT", "/config", b"{not json", "auth", 400, "body"),
+    ("PUT", "/config", b"[1, 2]", "auth", 400, "config"),
+    ("PUT", "/config", b"[" * 60_000, "auth", 400, "body"),  # RecursionError in json
+    ("PUT", "/config", b"\xff\xfe{}", "auth", 400, "body"),
+    ("PUT", "/config", b'{"probe": {"name": "x"}}', {"Authorization": "auth", "Content-Type": "text/plain"}, 400,
+     "Content-Type"),
+    ("PUT", "/config", b'{"pipeline": {"fps": "fast"}}', "auth", 400, "pipeline.fps"),
+    ("PUT", "/config", b'{"pipeline": {"fps": 1e9}}', "auth", 400, "pipeline.fps"),
+    ("PUT", "/config", b'{"pipeline": {"light_count": true}}', "auth", 400, "pipeline.light_count"),
+    ("PUT", "/config", b'{"pipeline": {"sampler": "magic"}}', "auth", 400, "pipeline.sampler"),
+    ("PUT", "/config", b'{"pipeline": {"nside": 48}}', "auth", 400, "pipeline.nside"),
+    ("PUT", "/config", b'{"probe": {"name": "\\u0000evil"}}', "auth", 400, "probe.name"),
+    ("PUT", "/config", b'{"probe": {"colour": "red"}}', "auth", 400, "probe.colour"),
+    ("PUT", "/config", b'{"nope": {}}', "auth", 400, "nope"),
+    ("PUT", "/config", b'{"probe": {"name": "ok"}, "pipeline": {"fps": -1}}', "auth", 400, "pipeline.fps"),
+    ("PUT", "/config", b'{"probe": {"name": "' + b"x" * 200_000 + b'"}}', "auth", 413, "body"),
+]
+
+
+async def test_bad_input_gives_json_4xx_and_config_unchanged(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path)
+    async with running_service(cfg) as s, aiohttp.ClientSession() as c:
+        await _wait_frames(c, s.api, 1)
+        _, before = await _get_json(c, s.api + "/config")
+        for method, path, body, headers, status, param in BAD_REQUESTS:
+            h = dict(s.auth) if headers == "auth" else dict(headers or {})
+            if h.get("Authorization") == "auth":
+                h["Authorization"] = s.auth["Authorization"]
+            h.setdefault("Content-Type", "application/json")
+            url = (s.api + path) if not path.startswith("/..") else s.url + path
+            async with c.request(method, url, data=body, headers=h) as r:
+                assert r.status == status, (method, path, await r.text())
+                assert r.content_type == "application/json", (method, path)
+                err = await r.json()
+                assert err["status"] == status
+                assert err["error"]
+                if param is not None:
+                    assert err["param"] == param, (method, path, err)
+        _, after = await _get_json(c, s.api + "/config")
+        assert after == before
+        assert not (tmp_path / "config.toml").exists()  # nothing was ever written
+        code, h = await _get_json(c, s.api + "/healthz")
+        assert code == 200
+        assert h["ok"]
+
+
+async def test_put_config_needs_token_persists_and_applies(tmp_path: Path) -> None:
+    async with running_service(service_config(tmp_path)) as s, aiohttp.ClientSession() as c:
+        await _wait_frames(c, s.api, 1)
+        patch = {"probe": {"name": "Atrium east"}, "pipeline": {"light_count": 16, "sampler": "pharr"}}
+        async with c.put(s.api + "/config", json=patch, headers=s.auth) as r:
+            assert r.status == 200
+            body = await r.json()
+        assert body["saved"] is True
+        assert body["config"]["probe"]["name"] == "Atrium east"
+        on_disk = load_config(tmp_path / "config.toml")
+        assert on_disk.get("probe", "name") == "Atrium east"
+        assert on_disk.get("pipeline", "light_count") == 16
+        # the pipeline is rebuilt: new frames carry the new count and method
+        t_end = time.monotonic() + 5
+        while time.monotonic() < t_end:
+            _, ls = await _get_json(c, s.api + "/lights")
+            if len(ls["lights"]) == 16 and ls["method"] == "pharr":
+                break
+            await asyncio.sleep(0.05)
+        else:
+            raise AssertionError("light_count/sampler change did not reach the pipeline")
+        _, st = await _get_json(c, s.api + "/status")
+        assert st["probe"]["name"] == "Atrium east"
+        assert st["light_count"] == 16
+
+
+async def test_reads_can_require_token(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path, service={"require_token_for_reads": True})
+    async with running_service(cfg) as s, aiohttp.ClientSession() as c:
+        code, err = await _get_json(c, s.api + "/status")
+        assert code == 401
+        assert err["param"] == "Authorization"
+        code, _ = await _get_json(c, s.api + "/status", headers=s.auth)
+        assert code == 200
+        code, _ = await _get_json(c, s.api + "/healthz")  # health stays open for supervisors
+        assert code in (200, 503)
+        with pytest.raises(aiohttp.WSServerHandshakeError):
+            await c.ws_connect(s.api + "/stream")
+        async with c.ws_connect(s.api + "/stream", params={"access_token": s.token}) as ws:
+            assert json.loads((await ws.receive(timeout=2)).data)["version"] == 1
+
+
+async def test_cors_only_for_configured_origins(tmp_path: Path) -> None:
+    cfg = service_config(tmp_path, service={"cors_origins": ["http://host.example"]})
+    async with running_service(cfg) as s, aiohttp.ClientSession() as c:
+        async with c.get(s.api + "/healthz", headers={"Origin": "http://host.example"}) as r:
+            assert r.headers.get("Access-Control-Allow-Origin") == "http://host.example"
+        async with c.get(s.api + "/healthz", headers={"Origin": "http://evil.example"}) as r:
+            assert "Access-Control-Allow-Origin" not in r.headers
+
+
+def _raw_ws(port: int, rcvbuf: int = 8192) -> Any:
+    """A WebSocket client on a plain socket with a tiny receive buffer: it reads only when told,
+    so the server sees real TCP backpressure (aiohttp's client would buffer in its own memory)."""
+    import socket as pysocket
+
+    raw = pysocket.socket()
+    raw.setsockopt(pysocket.SOL_SOCKET, pysocket.SO_RCVBUF, rcvbuf)
+    raw.connect(("127.0.0.1", port))
+    raw.sendall((f"GET /api/v1/stream HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                 "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                 "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += raw.recv(1)
+    assert head.startswith(b"HTTP/1.1 101"), head
+    return raw
+
+
+def _recv_exact(sock: Any, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("closed")
+        buf += chunk
+    return bytes(buf)
+
+
+def _read_ws_text(sock: Any) -> str:
+    """One unmasked, unfragmented server frame (RFC 6455 section 5.2)."""
+    b0, b1 = _recv_exact(sock, 2)
+    n = b1 & 0x7F
+    if n == 126:
+        n = int.from_bytes(_recv_exact(sock, 2), "big")
+    elif n == 127:
+        n = int.from_bytes(_recv_exact(sock, 8), "big")
+    data = _recv_exact(sock, n)
+    assert b0 & 0x0F == 1, f"opcode {b0 & 0x0F}"
+    return data.decode()
+
+
+async def test_slow_reader_skips_frames(tmp_path: Path) -> None:
+    """A client that reads one message per 0.5 s at 20 fps: the server's send waits on TCP
+    backpressure (bounded socket buffers), and the client then gets the newest frame, not a
+    backlog, so frame numbers jump."""
+    cfg = service_config(tmp_path, pipeline={"light_count": 1024}, service={"ws_send_timeout": 30.0})
+    async with running_service(cfg) as s, aiohttp.ClientSession() as c:
+        await _wait_frames(c, s.api, 1)
+        raw = await asyncio.to_thread(_raw_ws, s.port)
+        try:
+            frames = []
+            for _ in range(8):
+                frames.append(json.loads(await asyncio.to_thread(_read_ws_text, raw))["frame"])
+                await asyncio.sleep(0.5)
+            _, st = await _get_json(c, s.api + "/status")
+        finally:
+            raw.close()
+        gaps = np.diff(frames)
+        assert gaps.min() >= 1
+        assert gaps.max() > 1
+        assert st["websocket"]["frames_skipped"] > 0
+        assert st["websocket"]["dropped"] == 0
+        # what it got lags the pipeline by a bounded amount (socket buffers), not a growing backlog
+        assert st["frame"] - frames[-1] <= 60
+
+
+async def test_stalled_client_is_dropped_and_others_keep_streaming(tmp_path: Path) -> None:
+    """A client that never reads: its sends block on a full socket and it is dropped after
+    ws_send_timeout; memory is bounded by one payload in the slot plus the socket buffers."""
+
+    cfg = service_config(tmp_path, service={"ws_send_timeout": 0.5}, pipeline={"light_count": 4096, "fps": 30.0})
+    async with running_service(cfg) as s, aiohttp.ClientSession() as c:
+        raw = await asyncio.to_thread(_raw_ws, s.port, 4096)
+        try:
+            async with c.ws_connect(s.api + "/stream") as ws:
+                t_end = time.monotonic() + 20
+                dropped = 0
+                while time.monotonic() < t_end and dropped == 0:
+                    msg = await ws.receive(timeout=2)  # the good client keeps getting frames
+                    assert msg.type == aiohttp.WSMsgType.TEXT
+                    dropped = s.state.ws_dropped
+                assert dropped == 1
+                assert len(s.state.websockets) == 1
+        finally:
+            raw.close()
+
+
+async def test_camera_disconnect_turns_lights_stale_then_recovers(tmp_path: Path) -> None:
+    cams: list[FakeCamera] = []
+    make_camera, make_pipeline = fake_factories()
+
+    def camera() -> FakeCamera:
+        cams.append(make_camera())
+        return cams[-1]
+
+    async with running_service(service_config(tmp_path), camera, make_pipeline, backoff=(0.1, 0.4)) as s, \
+            aiohttp.ClientSession() as c, c.ws_connect(s.api + "/stream") as ws:
+        await _wait_frames(c, s.api, 2)
+        cams[0].disconnect(5.0)
+        t_reconnect = time.monotonic() + 5.0
+        st = await _poll_status(c, s.api, lambda st: st["stale"], 3.0)
+        assert st["camera"]["state"] == "reconnecting"
+        assert st["health"] == "degraded"
+        assert "CameraDisconnected" in st["camera"]["error"] or "CameraUnavailable" in st["camera"]["error"]
+        code, ls = await _get_json(c, s.api + "/lights")
+        assert code == 200
+        assert ls["stale"] is True
+        assert len(ls["lights"]) == 64
+        code, _ = await _get_json(c, s.api + "/healthz")
+        assert code in (200, 503)
+        # the stream also says stale, then fresh again
+        saw_stale = False
+        while True:
+            d = json.loads((await ws.receive(timeout=8)).data)
+            saw_stale |= d["stale"]
+            if saw_stale and not d["stale"]:
+                break
+        assert time.monotonic() - t_reconnect <= 2.0
+        st = await _poll_status(c, s.api, lambda st: not st["stale"], 2.0)
+        assert st["camera"]["state"] == "running"
+        assert st["camera"]["reconnects"] >= 1
+
+
+async def _poll_status(c: aiohttp.ClientSession, api: str, cond: Any, within: float) -> dict[str, Any]:
+    t_end = time.monotonic() + within
+    while True:
+        _, st = await _get_json(c, api + "/status")
+        if cond(st):
+            return st  # type: ignore[no-any-return]
+        if time.monotonic() > t_end:
+            raise AssertionError(f"status never matched: {st}")
+        await asyncio.sleep(0.05)
