@@ -16,6 +16,7 @@ from pathlib import Path
 
 BENCHMARKS = {
     "pipeline": "per-stage time and fused-radiance error on the simulated probe",
+    "hdr": "HDR fusion: accuracy and speed against OpenCV MergeDebevec",
     "samplers": "run time against error for every sampler on the shared maps",
     "service": "WebSocket load: pipeline fps and memory with many clients",
     "relight": "cut relighting: error and frame time",

@@ -9,6 +9,11 @@ fps (frames / wall time, from ``/status``), mean burst time (``timings.total``),
 than the fps ratio) and, when loaded, messages received per client
 and frame-to-client latency (receive time - the light set's timestamp). Writes ``service.json``
 and ``service.png``.
+
+Accuracy (issue 4): ``lightprobe serve --camera sim --scene MAP`` for each shared map, the
+published 256 lights against the true map's upper hemisphere: diffuse irradiance at 64
+upward-facing normals (exact pixel sums), relative error after the best global scale, and that
+scale (1 = the simulator's unit).
 """
 
 from __future__ import annotations
@@ -25,7 +30,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["run"]
+import numpy as np
+
+__all__ = ["run", "run_accuracy"]
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -49,11 +56,12 @@ def _cpu_s(pid: int) -> float:
         return float("nan")
 
 
-def _start_service(state: Path, fps: float, light_count: int) -> tuple[subprocess.Popen[str], str]:
+def _start_service(state: Path, fps: float, light_count: int,
+                   scene: str = "flashlight") -> tuple[subprocess.Popen[str], str]:
     cfg = state / "config.toml"
     state.mkdir(parents=True, exist_ok=True)
     cfg.write_text(f"[pipeline]\nfps = {fps!r}\nlight_count = {light_count}\n[mdns]\nenabled = false\n")
-    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--scene", "flashlight",
+    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--scene", scene,
                           "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
                          stderr=subprocess.DEVNULL, text=True)
@@ -94,6 +102,7 @@ async def _phase(session: Any, url: str, pid: int, seconds: float, clients: int)
     tasks = [asyncio.create_task(client(i)) for i in range(clients)]
     await asyncio.sleep(1.0 if clients else 0.0)  # connect before counting
     s0, t0, cpu0 = await _status(session, url), time.monotonic(), _cpu_s(pid)
+    me0 = time.process_time()
     rss, totals, seen = [], [], s0["frame"]
     while time.monotonic() - t0 < seconds:
         await asyncio.sleep(1.0)
@@ -103,6 +112,7 @@ async def _phase(session: Any, url: str, pid: int, seconds: float, clients: int)
             seen = st["frame"]
             totals.append(st["timings"].get("total", float("nan")))
     s1, t1, cpu1 = await _status(session, url), time.monotonic(), _cpu_s(pid)
+    me1, load = time.process_time(), os.getloadavg()[0]
     stop.set()
     await asyncio.gather(*tasks, return_exceptions=True)
     frames = s1["frames"] - s0["frames"]
@@ -110,6 +120,7 @@ async def _phase(session: Any, url: str, pid: int, seconds: float, clients: int)
     return {
         "clients": clients, "seconds": round(t1 - t0, 2), "frames": frames,
         "fps": frames / (t1 - t0), "cpu_s_per_frame": (cpu1 - cpu0) / frames if frames else None,
+        "service_cpu_s": cpu1 - cpu0, "bench_clients_cpu_s": me1 - me0, "loadavg_1min_at_end": load,
         "burst_time_mean_s": sum(totals) / len(totals) if totals else None,
         "rss_mb": rss, "rss_max_mb": max(rss) if rss else None,
         "messages_per_client_min": min(received) if clients else None,
@@ -179,6 +190,8 @@ async def _bench(seconds: float, clients: int, fps: float, light_count: int) -> 
         "burst_time_unloaded_s": unloaded["burst_time_mean_s"], "burst_time_loaded_s": loaded["burst_time_mean_s"],
         "cpu_s_per_frame_unloaded": unloaded["cpu_s_per_frame"],
         "cpu_s_per_frame_loaded": loaded["cpu_s_per_frame"],
+        "bench_clients_cpu_s_loaded": loaded["bench_clients_cpu_s"],
+        "loadavg_unloaded": unloaded["loadavg_1min_at_end"], "loadavg_loaded": loaded["loadavg_1min_at_end"],
         "rss_max_unloaded_mb": unloaded["rss_max_mb"], "rss_max_loaded_mb": loaded["rss_max_mb"],
         "latency_median_s": loaded["latency_median_s"], "latency_p95_s": loaded["latency_p95_s"],
         "ws_dropped": loaded["ws_dropped"], "sigterm_exit_s": round(stop_s, 2), "exit_code": rc,
@@ -186,10 +199,97 @@ async def _bench(seconds: float, clients: int, fps: float, light_count: int) -> 
     return {"summary": summary, "unloaded": unloaded, "loaded": loaded}
 
 
+# ---- end-to-end accuracy: the served lights against the true map -------------------------------------
+SETTLE_FRAMES = 4
+MAPS = ["studio_small_03_1k", "rooitou_park_1k", "potsdamer_platz_1k", "lebombo_1k", "dikhololo_night_1k",
+        "interior_blender.exr"]
+
+
+def upper_normals(n: int = 64) -> np.ndarray:
+    """``n`` upward-facing normals (y >= 0): a spherical Fibonacci set on the upper hemisphere."""
+    i = np.arange(n) + 0.5
+    y = 1.0 - i / n  # uniform in y on [0, 1]: equal area on the hemisphere
+    phi = np.pi * (1 + 5**0.5) * i
+    r = np.sqrt(1 - y * y)
+    return np.stack([r * np.sin(phi), y, -r * np.cos(phi)], axis=1)
+
+
+def irradiance_truth(equirect: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Diffuse irradiance (N, 3) from the map's upper hemisphere, exact pixel sums (float64):
+    E(n) = sum over pixels with y > 0 of L * Omega_pixel * max(0, n . w)."""
+    from device.sphere import equirect_directions, equirect_solid_angle
+
+    h = equirect.shape[0]
+    top = h // 2  # rows 0 .. h/2 - 1 are exactly the upper hemisphere
+    d = equirect_directions(h)[:top].reshape(-1, 3)
+    e = (equirect[:top].astype(np.float64) * equirect_solid_angle(h)[:top, :, None]).reshape(-1, 3)
+    return np.maximum(normals @ d.T, 0.0) @ e
+
+
+def irradiance_lights(lights: list[dict[str, Any]], normals: np.ndarray) -> np.ndarray:
+    d = np.array([li["direction"] for li in lights], np.float64)
+    rgb = np.array([li["rgb"] for li in lights], np.float64)
+    return np.maximum(normals @ d.T, 0.0) @ rgb
+
+
+def compare_irradiance(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
+    """Relative error of luminance irradiance after the best global scale s (least squares on
+    relative residuals), and s itself (1 = the lights are in the simulator's unit)."""
+    w = np.array([0.2126, 0.7152, 0.0722])
+    t, e = truth @ w, est @ w
+    ok = t > 1e-12 * t.max()
+    q = e[ok] / t[ok]
+    s = float(q.sum() / (q * q).sum())
+    rel = np.abs(s * q - 1.0)
+    raw = np.abs(q - 1.0)
+    return {"scale": 1.0 / s, "max_rel_err_scaled": float(rel.max()), "rms_rel_err_scaled": float(np.sqrt((rel**2).mean())),
+            "max_rel_err_unscaled": float(raw.max())}
+
+
+async def _accuracy_one(name: str, light_count: int) -> dict[str, Any]:
+    import aiohttp
+
+    from sim.scenarios import load_scene
+
+    with tempfile.TemporaryDirectory(prefix="lp-acc-") as tmp:
+        p, url = _start_service(Path(tmp) / "state", 10.0, light_count, scene=name)
+        try:
+            async with aiohttp.ClientSession() as session, session.ws_connect(url + "/api/v1/stream") as ws:
+                first = json.loads((await ws.receive(timeout=400)).data)
+                d = first
+                while d["frame"] < first["frame"] + SETTLE_FRAMES:  # let the bracket planner adapt
+                    d = json.loads((await ws.receive(timeout=120)).data)
+        finally:
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+    truth_map = load_scene(name).radiance_equirect(0.0)
+    normals = upper_normals()
+    cmp = compare_irradiance(irradiance_truth(truth_map, normals), irradiance_lights(d["lights"], normals))
+    return {"map": name, "lights": len(d["lights"]), "unit": d["unit"], "method": d["method"],
+            "frames_used": [first["frame"], d["frame"]], **cmp}
+
+
+def run_accuracy(maps: list[str], light_count: int = 256) -> list[dict[str, Any]]:
+    out = []
+    for name in maps:
+        out.append(asyncio.run(_accuracy_one(name, light_count)))
+        print(json.dumps(out[-1]), file=sys.stderr, flush=True)
+    return out
+
+
 def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
-    """Run the load benchmark; ``quick``: 10 s phases and 10 clients."""
+    """Run the load benchmark (``quick``: 10 s phases, 10 clients) and the end-to-end accuracy
+    check over the shared maps (``quick``: two maps)."""
     seconds, clients = (10.0, 10) if quick else (30.0, 50)
     result = asyncio.run(_bench(seconds, clients, fps=10.0, light_count=256))
+    acc = run_accuracy(MAPS[:2] if quick else MAPS)
+    result["accuracy"] = acc
+    result["summary"]["accuracy_max_rel_err_scaled"] = max(a["max_rel_err_scaled"] for a in acc)
+    result["summary"]["accuracy_scale_range"] = [min(a["scale"] for a in acc), max(a["scale"] for a in acc)]
     from bench.cli import machine_info
 
     result["machine"] = machine_info()

@@ -64,7 +64,8 @@ def _write(args: argparse.Namespace, **sections: Any) -> None:
 def _read_images(paths: list[str]) -> list[tuple[str, np.ndarray]]:
     import cv2
 
-    out, sizes = [], {}
+    out: list[tuple[str, np.ndarray]] = []
+    sizes: dict[tuple[int, int], list[str]] = {}
     for p in paths:
         img = cv2.imread(p, cv2.IMREAD_UNCHANGED)
         if img is None:
@@ -113,12 +114,32 @@ def cmd_fisheye(args: argparse.Namespace) -> int:
         raise _err(f"{e}", "IMG") from e
     from dataclasses import replace
 
+    from .fisheye import field_of_view_deg
+
     model = replace(res.model, views_rejected=tuple(res.rejected) + tuple(Path(p).name for p in missing))
+    circle = _image_circle([img for _, img in images], (float(model.K[0, 2]), float(model.K[1, 2])))
+    if circle is not None:  # a circular fisheye: the field of view ends at the circle, not the corner
+        model = replace(model, fov_deg=field_of_view_deg(model, circle))
     print(f"rms {res.rms_px:.3f} px, {len(res.used)} views used, {len(model.views_rejected)} rejected, "
           f"fx {model.K[0, 0]:.2f} fy {model.K[1, 1]:.2f} cx {model.K[0, 2]:.2f} cy {model.K[1, 2]:.2f}, "
           f"fov {model.fov_deg:.1f} deg, coverage {100 * res.coverage_fraction:.0f}%", file=sys.stderr)
     _write(args, fisheye=model)
     return 0
+
+
+def _image_circle(images: list[np.ndarray], center: tuple[float, float]) -> float | None:
+    """Radius of a circular fisheye's image circle from the per-pixel maximum of the photos
+    (outside the circle every photo is dark), or None for a full-frame image."""
+    from .mask import find_mask
+
+    stack = np.max([i if i.ndim == 2 else i.max(axis=2) for i in images], axis=0).astype(np.float64)
+    h, w = stack.shape
+    inscribed = min(center[0], center[1], w - 1 - center[0], h - 1 - center[1])
+    try:
+        m = find_mask(stack, center, margin_px=0.0)
+    except ValueError:
+        return None
+    return m.radius_px if m.radius_px < inscribed - 2 else None
 
 
 def cmd_response(args: argparse.Namespace) -> int:
@@ -205,13 +226,51 @@ def cmd_mask(args: argparse.Namespace) -> int:
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
-    from .pose import pose_from_angles
+    from .pose import pose_from_angles, pose_from_board
 
+    if args.board_image:
+        return _pose_from_board_image(args, pose_from_board)
+    if args.heading is None:
+        raise _err("give --heading (installer angles) or --board-image", "--heading")
     try:
         pose = pose_from_angles(args.heading, args.tilt, args.tilt_azimuth, tuple(args.position))
     except ValueError as e:
         raise _err(str(e), "--heading") from e
     _write(args, pose=pose)
+    return 0
+
+
+def _pose_from_board_image(args: argparse.Namespace, pose_from_board: Any) -> int:
+    """Pose from a board lying on the floor, seen through the calibrated fisheye."""
+    from dataclasses import replace
+
+    from .fisheye import board_object_points, detect_board, orient_corners, parse_board
+    from .store import CalibrationStore
+
+    existing = _load_existing(Path(args.out) if args.out else None)
+    if existing.fisheye is None and args.state:
+        existing = CalibrationStore(args.state).load().calibration or existing
+    if existing.fisheye is None:
+        raise _err("--board-image needs a fisheye calibration in --out or --state", "--board-image")
+    if not args.board:
+        raise _err("--board-image needs --board COLSxROWS", "--board")
+    try:
+        board = parse_board(args.board, args.square)
+    except ValueError as e:
+        raise _err(f"--board/--square: {e}", "--board") from e
+    (path, img), = _read_images([args.board_image])
+    corners = detect_board(img, board, accurate=True)
+    if corners is None:
+        raise _err(f"{path}: no {args.board} board found", path)
+    if (board.cols + board.rows) % 2 == 0:
+        print("warning: a board with both counts even or both odd is symmetric: the heading may be "
+              "off by 180 degrees (use e.g. 9x6)", file=sys.stderr)
+    corners = orient_corners(img, corners, board)
+    try:
+        pose = pose_from_board(corners, board_object_points(board), existing.fisheye)
+    except ValueError as e:
+        raise _err(f"{path}: {e}", path) from e
+    _write(args, pose=replace(pose, position=np.asarray(args.position, np.float64)))
     return 0
 
 
@@ -261,30 +320,13 @@ def cmd_rollback(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lightprobe calibrate", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True)
+def out_opts(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--out", help="calibration JSON to write (merged if it exists)")
+    sp.add_argument("--state", help="state directory: also save as a new version in its store")
 
-    def out_opts(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--out", help="calibration JSON to write (merged if it exists)")
-        sp.add_argument("--state", help="state directory: also save as a new version in its store")
 
-    f = sub.add_parser("fisheye", help="fisheye geometry from checkerboard photos")
-    f.add_argument("images", nargs="+", metavar="IMG")
-    f.add_argument("--board", required=True, help="COLSxROWS inner corners, e.g. 8x6")
-    f.add_argument("--square", type=float, required=True, help="square size in mm")
-    f.add_argument("--min-views", type=int, default=4)
-    out_opts(f)
-    f.set_defaults(fn=cmd_fisheye)
-
-    r = sub.add_parser("response", help="response curve from a bracketed static scene")
-    r.add_argument("images", nargs="+", metavar="IMG")
-    r.add_argument("--times", nargs="+", type=float, required=True, help="exposure times (s)")
-    r.add_argument("--method", choices=("debevec", "robertson"), default="debevec")
-    out_opts(r)
-    r.set_defaults(fn=cmd_response)
-
+def _add_measure_parsers(sub: Any) -> None:
+    """photometric, vignetting, mask and pose subcommands."""
     ph = sub.add_parser("photometric", help="photometric scale from a lux meter beside the probe")
     ph.add_argument("--map", required=True, help="the probe's equirect map (.exr/.hdr) at the meter time")
     src = ph.add_mutually_exclusive_group(required=True)
@@ -311,14 +353,40 @@ def _parser() -> argparse.ArgumentParser:
     out_opts(m)
     m.set_defaults(fn=cmd_mask)
 
-    po = sub.add_parser("pose", help="mounting pose from installer angles (degrees)")
-    po.add_argument("--heading", type=float, required=True)
+    po = sub.add_parser("pose", help="mounting pose from installer angles (deg) or a floor board")
+    po.add_argument("--heading", type=float, help="room azimuth of the front mark (deg)")
     po.add_argument("--tilt", type=float, default=0.0)
     po.add_argument("--tilt-azimuth", type=float, default=0.0)
-    po.add_argument("--position", type=float, nargs=3, default=(0.0, 0.0, 0.0))
+    po.add_argument("--position", type=float, nargs=3, default=(0.0, 0.0, 0.0), help="metres")
+    po.add_argument("--board-image", help="photo of a board on the floor (x axis = azimuth 0)")
+    po.add_argument("--board", help="COLSxROWS inner corners of the floor board")
+    po.add_argument("--square", type=float, default=1.0, help="square size (any unit)")
     out_opts(po)
     po.set_defaults(fn=cmd_pose)
 
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lightprobe calibrate", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    f = sub.add_parser("fisheye", help="fisheye geometry from checkerboard photos")
+    f.add_argument("images", nargs="+", metavar="IMG")
+    f.add_argument("--board", required=True, help="COLSxROWS inner corners, e.g. 8x6")
+    f.add_argument("--square", type=float, required=True, help="square size in mm")
+    f.add_argument("--min-views", type=int, default=4)
+    out_opts(f)
+    f.set_defaults(fn=cmd_fisheye)
+
+    r = sub.add_parser("response", help="response curve from a bracketed static scene")
+    r.add_argument("images", nargs="+", metavar="IMG")
+    r.add_argument("--times", nargs="+", type=float, required=True, help="exposure times (s)")
+    r.add_argument("--method", choices=("debevec", "robertson"), default="debevec")
+    out_opts(r)
+    r.set_defaults(fn=cmd_response)
+
+    _add_measure_parsers(sub)
     s = sub.add_parser("show", help="print a calibration")
     s.add_argument("file", nargs="?")
     s.add_argument("--state")

@@ -38,6 +38,7 @@ __all__ = [
     "coverage_grid",
     "detect_board",
     "field_of_view_deg",
+    "orient_corners",
     "parse_board",
     "view_rms",
 ]
@@ -120,6 +121,31 @@ def detect_board(image: np.ndarray, board: BoardSpec, *, thorough: bool = True,
     return pts if pts.shape[0] == board.n_corners else None
 
 
+def orient_corners(image: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """Order corners so the first one has a *black* square diagonally outside the board.
+
+    OpenCV may return a board's corners in either of the two 180-degree-related orders. For a
+    board with one even and one odd corner count the two outer corners differ in colour, which
+    fixes the board's x axis (needed for a heading from a floor board). The square centre is
+    extrapolated half a square step beyond each end along both grid directions.
+    """
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    c = np.asarray(corners, np.float64).reshape(board.rows, board.cols, 2)
+
+    def outer(a: np.ndarray, right: np.ndarray, down: np.ndarray) -> float:
+        p = a - 0.5 * (right - a) - 0.5 * (down - a)
+        x, y = int(np.rint(p[0])), int(np.rint(p[1]))
+        if not (0 <= x < gray.shape[1] and 0 <= y < gray.shape[0]):
+            return float("nan")
+        return float(gray[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2].mean())
+
+    first = outer(c[0, 0], c[0, 1], c[1, 0])
+    last = outer(c[-1, -1], c[-1, -2], c[-2, -1])
+    if np.isfinite(first) and np.isfinite(last) and first > last:
+        return np.asarray(corners, np.float64).reshape(-1, 2)[::-1].copy()
+    return np.asarray(corners, np.float64).reshape(-1, 2)
+
+
 @dataclass
 class View:
     """One detected board view: a name (file), its corners (N, 2) and the board points (N, 3)."""
@@ -156,13 +182,14 @@ def _solve(views: Sequence[View], image_size: tuple[int, int], flags: int,
            ) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
     obj = [v.object_points.reshape(1, -1, 3).astype(np.float64) for v in views]
     img = [v.corners.reshape(1, -1, 2).astype(np.float64) for v in views]
-    K = np.zeros((3, 3))
-    D = np.zeros((4, 1))
+    K: np.ndarray = np.zeros((3, 3))
+    D: np.ndarray = np.zeros((4, 1))
     if guess is not None:
         K, D = guess[0].copy(), guess[1].reshape(4, 1).copy()
         flags |= cv2.CALIB_USE_INTRINSIC_GUESS
-    rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(obj, img, image_size, K, D, flags=flags,
-                                                    criteria=CRITERIA)
+    rms, K_out, D_out, rvecs, tvecs = cv2.fisheye.calibrate(obj, img, image_size, K, D, flags=flags,
+                                                            criteria=CRITERIA)
+    K, D = np.asarray(K_out, np.float64), np.asarray(D_out, np.float64)
     return float(rms), K, D.reshape(4), list(rvecs), list(tvecs)
 
 
@@ -352,7 +379,7 @@ def _result(active: list[View], image_size: tuple[int, int], rms: float, K: np.n
                          views_used=len(active), views_rejected=tuple(rejected))
     grid = coverage_grid(np.concatenate([v.corners for v in active]), image_circle, image_size)
     inside = grid >= 0
-    frac = float(np.count_nonzero(grid > 0) / max(np.count_nonzero(inside), 1))
+    frac = int(np.count_nonzero(grid > 0)) / max(int(np.count_nonzero(inside)), 1)
     return FisheyeResult(model, rms, {v.name: float(e) for v, e in zip(active, errs, strict=True)},
                          [v.name for v in active], rejected, grid, frac, image_circle, rvecs, tvecs)
 

@@ -119,7 +119,7 @@ class LiveFisheyeCalibration:
         grid = self._grid()
         inside = grid >= 0
         p.views = len(self.views)
-        p.coverage_percent = 100.0 * np.count_nonzero(grid > 0) / max(np.count_nonzero(inside), 1)
+        p.coverage_percent = 100.0 * int(np.count_nonzero(grid > 0)) / max(int(np.count_nonzero(inside)), 1)
         rings, sectors = grid.shape
         p.missing_regions = [f"ring {i + 1}/{rings}, sector {j + 1}/{sectors}"
                              for i in range(rings) for j in range(sectors) if grid[i, j] == 0]
@@ -138,13 +138,13 @@ class LiveFisheyeCalibration:
         self.progress.last_event = what
         return what
 
-    async def run(self, camera: Camera, *, max_frames: int = 1000, timeout: float = 1.0,
+    async def run(self, camera: Camera, *, max_frames: int = 1000, capture_timeout: float = 1.0,
                   stop_when_good: bool = True) -> LiveProgress:
         """Feed frames from an open ``camera`` until good enough or ``max_frames``."""
         import asyncio
 
         for _ in range(max_frames):
-            frame: Frame = await camera.capture(timeout)
+            frame: Frame = await camera.capture(capture_timeout)
             await asyncio.to_thread(self.feed, frame.data)
             if stop_when_good and self.progress.good_enough:
                 break

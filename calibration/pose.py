@@ -12,7 +12,9 @@ Installer angles (:func:`pose_from_angles`):
   room-horizontal direction of azimuth ``tilt_azimuth_deg`` (applied after the heading).
 
 Board on the floor (:func:`pose_from_board`): the board's +x axis defines room azimuth 0 (room
--z), its normal towards the camera defines room +y; ``cv2.fisheye.solvePnP`` (OpenCV >= 4.9)
+-z), its normal towards the camera defines room +y; the board origin is the inner corner with a
+black square diagonally outside it (``calibration.fisheye.orient_corners``; use a board with one
+even and one odd corner count, else the heading is ambiguous by 180 degrees); ``cv2.fisheye.solvePnP`` (OpenCV >= 4.9)
 gives the board pose in the camera frame, and ``device.sphere.CAMERA_TO_PROBE`` links camera and
 probe frames. Dtype policy: float64 throughout.
 """

@@ -201,7 +201,7 @@ def linearity_check(frames: Sequence[np.ndarray], exposures_s: Sequence[float], 
 
 
 async def capture_bracket(camera: Camera, exposures_s: Sequence[float], *, frames_per_exposure: int = 1,
-                          gain: float | None = None, timeout: float = 2.0) -> list[Frame]:
+                          gain: float | None = None, capture_timeout: float = 2.0) -> list[Frame]:
     """One frame per exposure (the average of ``frames_per_exposure``), metadata-verified.
 
     Frames whose ``meta.exposure_s`` is not the requested value (control latency) are skipped;
@@ -214,7 +214,7 @@ async def capture_bracket(camera: Camera, exposures_s: Sequence[float], *, frame
         got: list[Frame] = []
         skipped = 0
         while len(got) < frames_per_exposure:
-            f = await camera.capture(timeout)
+            f = await camera.capture(capture_timeout)
             if abs(f.meta.exposure_s - t) <= 1e-6 * t:
                 got.append(f)
             else:

@@ -44,7 +44,7 @@ class PipelineConfig:
     fps: float = 10.0
     sampler: str = "q2tree"
     light_count: int = 256
-    max_exposures: int = 4
+    max_exposures: int = 8  # the planner uses only what the scene needs (lebombo: 4)
     ev_step: float = 2.0
     equirect_height: int = 256
     nside: int = 64

@@ -21,6 +21,7 @@ read has a deadline, so no call can hang. Importing this module opens nothing.
 
 from __future__ import annotations
 
+import contextlib
 import termios
 import time
 from dataclasses import dataclass
@@ -33,13 +34,13 @@ from device.errors import LightprobeError
 
 __all__ = [
     "T10A",
+    "Reply",
     "T10AChecksumError",
     "T10ADisconnected",
     "T10AError",
     "T10AGarbage",
     "T10AMeterError",
     "T10ATimeout",
-    "Reply",
     "bcc",
     "decode_block",
     "encode_block",
@@ -177,16 +178,14 @@ class T10A:
             self._ser = serial.serial_for_url(self.port, baudrate=9600, bytesize=serial.SEVENBITS,
                                               parity=serial.PARITY_EVEN, stopbits=serial.STOPBITS_ONE,
                                               timeout=POLL_S, write_timeout=self.timeout)
-        except (serial.SerialException, OSError) as e:
+        except (serial.SerialException, OSError, termios.error) as e:
             raise T10ADisconnected(f"cannot open serial port ({e})", port=self.port) from e
         self.connect()
 
     def close(self) -> None:
         if self._ser is not None:
-            try:
+            with contextlib.suppress(serial.SerialException, OSError, termios.error):
                 self._ser.close()
-            except (serial.SerialException, OSError, termios.error):
-                pass
             self._ser = None
 
     def __enter__(self) -> Self:

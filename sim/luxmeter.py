@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import os
 import select
+import termios
 import threading
 import time
 import tty
@@ -50,6 +51,7 @@ class SimT10A:
         self._last_refresh = -1e9
         self._master = -1
         self._slave = -1
+        self._attrs: list = []  # termios attribute list
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.requests: list[bytes] = []
@@ -59,6 +61,9 @@ class SimT10A:
     def start(self) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no CR/LF translation, no echo
+        # Linux ptys refuse a second pyserial open once 7E1 was requested (tcsetattr EINVAL);
+        # the meter restores its raw line settings while idle so clients can reopen the port.
+        self._attrs = termios.tcgetattr(self._slave)
         self.port = os.ttyname(self._slave)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="sim-t10a", daemon=True)
@@ -150,6 +155,8 @@ class SimT10A:
             try:
                 ready, _, _ = select.select([self._master], [], [], 0.05)
                 if not ready:
+                    with contextlib.suppress(termios.error, OSError):
+                        termios.tcsetattr(self._slave, termios.TCSANOW, self._attrs)
                     continue
                 buf += os.read(self._master, 256)
             except OSError:

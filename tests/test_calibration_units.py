@@ -16,9 +16,13 @@ from calibration.response import (
     linearity_check,
     response_from_stack,
 )
-from calibration.vignetting import max_relative_error, vignetting_from_flat_field, vignetting_from_patches
+from calibration.vignetting import (
+    max_relative_error,
+    vignetting_from_flat_field,
+    vignetting_from_patches,
+)
 from device.sphere import CAMERA_TO_PROBE
-from drivers.base import Controls, Mode, PixelFormat
+from drivers.base import Mode, PixelFormat
 from sim.camera import SimCamera
 from sim.scene import Scene
 
@@ -45,8 +49,10 @@ def test_response_matches_sim_truth(rgb_bracket: tuple[list[np.ndarray], Calibra
                                     tol_mid: float, tol_wide: float) -> None:
     frames, truth = rgb_bracket
     resp = response_from_stack(frames, EXPOSURES, method=method)
-    assert resp.method == method and resp.inverse.shape == (256, 3)
-    assert np.all(np.isfinite(resp.inverse)) and np.all(np.diff(resp.inverse, axis=0) >= 0)
+    assert resp.method == method
+    assert resp.inverse.shape == (256, 3)
+    assert np.all(np.isfinite(resp.inverse))
+    assert np.all(np.diff(resp.inverse, axis=0) >= 0)
     assert compare_inverse(resp, truth.response, 32, 230) <= tol_mid
     assert compare_inverse(resp, truth.response, 16, 240) <= tol_wide
     # A linear table is far from the truth: the comparison can fail.
@@ -60,7 +66,9 @@ def test_clean_inverse_guards_nan_and_non_monotone() -> None:
     t[100, 1] = 0.0
     t[200, 2] = 0.1
     c = clean_inverse(t)
-    assert np.all(np.isfinite(c)) and np.all(c > 0) and np.all(np.diff(c, axis=0) >= 0)
+    assert np.all(np.isfinite(c))
+    assert np.all(c > 0)
+    assert np.all(np.diff(c, axis=0) >= 0)
     assert c[128, 0] == pytest.approx(1.0)
     with pytest.raises(ValueError, match="no finite"):
         clean_inverse(np.full((256, 3), np.nan))
@@ -137,7 +145,8 @@ def test_mask_finds_housing_ring_on_sim(sim_flat: tuple[np.ndarray, Calibration,
     ring_inner = circle_r * (92.5 / 93.5)
     assert ring_inner - 8 <= m.radius_px <= ring_inner
     inside = mask_image(m, lin.shape[:2])
-    assert inside[int(K[1, 2]), int(K[0, 2])] and not inside[0, 0]
+    assert inside[int(K[1, 2]), int(K[0, 2])]
+    assert not inside[0, 0]
     filled = fill_masked(lin.astype(np.float32), m, band_px=6)
     vv, uu = np.mgrid[0 : lin.shape[0], 0 : lin.shape[1]]
     band = (np.hypot(uu - K[0, 2], vv - K[1, 2]) > m.radius_px + 1) & (np.hypot(uu - K[0, 2], vv - K[1, 2]) < m.radius_px + 5)
@@ -152,7 +161,8 @@ def test_mask_finds_housing_ring_on_sim(sim_flat: tuple[np.ndarray, Calibration,
 def test_mask_section_round_trips_in_calibration() -> None:
     cal = Calibration(mask=LensMask((320.0, 240.0), 230.5))
     back = Calibration.from_json(cal.to_json())
-    assert back.mask == cal.mask and back.id == cal.id
+    assert back.mask == cal.mask
+    assert back.id == cal.id
     assert "mask" not in Calibration().to_json()  # absent when not calibrated
 
 
@@ -163,7 +173,7 @@ def test_pose_from_angles_conventions() -> None:
     p = pose_from_angles(0.0, 10.0, 90.0)
     np.testing.assert_allclose(p.rotation @ [0, 1, 0], [np.sin(np.radians(10)), np.cos(np.radians(10)), 0], atol=1e-12)
     assert np.linalg.det(p.rotation) == pytest.approx(1.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="finite"):
         pose_from_angles(float("nan"))
 
 
@@ -186,3 +196,35 @@ def test_pose_from_board_on_floor_recovers_rotation() -> None:
     assert rotation_angle_deg(est.rotation, R_true) < 0.3
     wrong = pose_from_angles(33.0, 3.0, 45.0).rotation @ flip
     assert rotation_angle_deg(est.rotation, wrong) > 2.0
+
+
+def test_cli_pose_from_rendered_floor_board(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``calibrate pose --board-image``: a board rendered on the floor below a downward-looking
+    probe (sim.board through the calibrated lens) gives the true mounting rotation."""
+    import json
+
+    import cv2
+
+    from calibration.cli import main as calibrate_main
+    from sim.board import BoardPose, BoardRenderer
+
+    model = FisheyeModel((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),
+                         np.array([0.03, -0.01, 0.004, -0.0008]), fov_deg=190.0)
+    R_true = pose_from_angles(-40.0, 2.0, 120.0).rotation @ np.diag([1.0, -1.0, -1.0])
+    R_room_board = np.stack([[0, 0, -1.0], [-1.0, 0, 0], [0, 1.0, 0]], axis=1)
+    origin = np.array([-0.7, -1.5, 0.5])
+    R_cb = CAMERA_TO_PROBE.T @ R_true.T @ R_room_board
+    t_cb = CAMERA_TO_PROBE.T @ R_true.T @ origin
+    img = BoardRenderer(model, supersample=2).render(BoardPose(R_cb, t_cb), 9, 6, 0.15,
+                                                      rng=np.random.default_rng(1))
+    cv2.imwrite(str(tmp_path / "floor.png"), img)
+    out = tmp_path / "calib.json"
+    out.write_text(json.dumps(Calibration(fisheye=model).to_json()))
+    assert calibrate_main(["pose", "--board-image", str(tmp_path / "floor.png"), "--board", "9x6",
+                           "--square", "150", "--out", str(out)]) == 0
+    cal = Calibration.from_json(json.loads(out.read_text()))
+    assert rotation_angle_deg(cal.pose.rotation, R_true) < 0.5
+    assert cal.fisheye is not None  # kept
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.zeros((640, 640), np.uint8))
+    assert calibrate_main(["pose", "--board-image", str(blank), "--board", "9x6", "--out", str(out)]) == 2

@@ -30,7 +30,9 @@ from sim.luxmeter import SimT10A
 
 def test_frame_layout_and_bcc() -> None:
     f = make_frame(0, "54", "1   ")
-    assert f[:1] == b"\x02" and f[-2:] == b"\r\n" and len(f) == 14
+    assert f[:1] == b"\x02"
+    assert f[-2:] == b"\r\n"
+    assert len(f) == 14
     assert f[1:10] == b"00541   \x03"
     x = 0
     for b in f[1:10]:
@@ -137,7 +139,8 @@ def test_photometric_scale_from_simulated_meter_within_1_percent() -> None:
     phot = photometric_scale(stats.mean, probe_map)
     assert phot.unit == "nit"
     assert abs(phot.scale / k_true - 1) < 0.01
-    assert 0 < stats.cv_percent < 2.0 and len(stats.values) == 8
+    assert 0 < stats.cv_percent < 2.0
+    assert len(stats.values) == 8
     # Degenerate maps: black -> clear error; NaN pixels ignored.
     with pytest.raises(ValueError, match="no light"):
         photometric_scale(100.0, np.zeros((8, 16, 3), np.float32))
@@ -151,3 +154,31 @@ def test_upper_irradiance_of_uniform_sky_is_pi_l() -> None:
         img = np.ones((h, 2 * h, 3), np.float32) * 2.0
         expected = np.pi * 2.0  # the lower hemisphere contributes nothing
         assert upper_irradiance(img) == pytest.approx(expected, rel=1e-12)
+
+
+def test_cli_photometric_with_simulated_meter(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``lightprobe calibrate photometric --port PTY`` end to end: uniform sky of 3 relative
+    units, meter reading 300 pi lux -> scale 100, merged into the calibration file."""
+    import json
+
+    from calibration.cli import main as calibrate_main
+    from calibration.model import Calibration
+    from device.imageio import write_exr
+
+    m = tmp_path / "map.exr"
+    write_exr(m, np.full((32, 64, 3), 3.0, np.float32))
+    out = tmp_path / "calib.json"
+    with SimT10A(300 * np.pi, noise_rel=0.0, period_s=0.01) as meter:
+        rc = calibrate_main(["photometric", "--map", str(m), "--port", meter.port, "--readings", "3",
+                             "--interval", "0.02", "--timeout", "0.3", "--out", str(out)])
+        assert rc == 0
+        meter.inject("timeout", None)  # a dead meter: exit 1 with a clear message, no hang
+        t0 = time.monotonic()
+        rc = calibrate_main(["photometric", "--map", str(m), "--port", meter.port, "--timeout", "0.2",
+                             "--out", str(tmp_path / "other.json")])
+        assert rc == 1
+        assert time.monotonic() - t0 < 3.0
+    cal = Calibration.from_json(json.loads(out.read_text()))
+    assert cal.photometric.unit == "nit"
+    assert cal.photometric.scale == pytest.approx(100.0, rel=1e-3)
+    assert not (tmp_path / "other.json").exists()

@@ -18,6 +18,7 @@ from device.errors import InputError
 from device.healpix import npix, pix2vec_nest, vec2pix_nest
 from device.projection import (
     Projector,
+    fisheye_pixel_directions,
     fisheye_pixel_solid_angles,
     fisheye_valid_mask,
     spherical_triangle_solid_angle,
@@ -114,6 +115,12 @@ def test_pixel_solid_angles_match_the_lens_jacobian() -> None:
     inner = fisheye_valid_mask(fe, 5.0)
     rel = omega[inner] / jac[inner] - 1
     assert np.max(np.abs(rel)) < 2e-3  # the Jacobian is a point value, omega the footprint
+    # Pixel centres: image centre -> zenith, image right -> +x, image down -> -z (CAMERA_TO_PROBE)
+    d = fisheye_pixel_directions(fe)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
+    assert d[120, 160, 1] > 0.9999
+    assert d[120, 300, 0] > 0.9
+    assert d[230, 160, 2] < -0.9
     # The hemisphere theta <= 90 deg holds 2 pi sr (staircase edge ~ a pixel ring)
     hemi = _theta_of(uu, vv) <= np.pi / 2
     assert omega[hemi].sum() == pytest.approx(2 * np.pi, rel=0.02)
@@ -308,3 +315,33 @@ def test_bad_input_raises_input_error(proj: Projector) -> None:
         Projector(_calibration(), lower="sky")
     with pytest.raises(InputError, match="nside"):
         Projector(_calibration(), nside=48)
+
+
+def test_tables_are_memoised_per_calibration_and_read_only(proj: Projector) -> None:
+    again = Projector(_calibration(), equirect_height=128, nside=32)
+    assert again._tables is proj._tables
+    fresh = Projector(_calibration(), equirect_height=128, nside=32, cache=False)
+    assert fresh._tables is not proj._tables
+    np.testing.assert_array_equal(fresh._tables["healpix"].data, proj._tables["healpix"].data)
+    with pytest.raises(ValueError, match="read-only"):
+        proj.coverage_polar[0, 0] = 0.5
+
+
+@pytest.mark.parametrize("lower", ["zero", "mean-horizon"])
+def test_a_lens_narrower_than_the_hemisphere(lower: str) -> None:
+    cal = _calibration()
+    fe = cal.fisheye
+    narrow = cal.with_(fisheye=FisheyeModel(fe.image_size, fe.K, fe.D, fov_deg=160.0))
+    p = Projector(narrow, polar_height=18, equirect_height=36, nside=8, lower=lower)
+    cov = p.coverage_polar  # rows of 5 deg; the lens sees to 79.5 deg
+    assert np.all(cov[:15] == 1.0)
+    assert np.all(cov[16] < 0.01)  # pixel corners just past 80 deg
+    assert np.all(cov[17:] == 0.0)
+    level = 1.5
+    maps = p.project(_measured(p, np.full((H, W, 3), level, np.float32)))
+    for name in MAPS:
+        assert np.isfinite(getattr(maps, name)).all()
+    np.testing.assert_allclose(maps.polar[cov > 0], level, rtol=1e-5)
+    assert not np.any(maps.polar[cov == 0])
+    if lower == "mean-horizon":  # the unseen band, the horizon and the ground take the mean
+        np.testing.assert_allclose(maps.equirect, level, rtol=1e-5)

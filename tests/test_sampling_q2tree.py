@@ -291,3 +291,16 @@ def test_finer_healpix_map_is_reduced_to_the_tree_level() -> None:
     want = Q2TreeSampler(nside_max=8).sample_healpix(coarse.astype(np.float32), 8, 200)
     np.testing.assert_allclose(ls.rgb, want.rgb, rtol=1e-6)
     np.testing.assert_array_equal(ls.ids, want.ids)
+
+
+def test_map_size_change_rebuilds(studio: np.ndarray) -> None:
+    s = Q2TreeSampler()
+    s.sample(studio, 300)
+    assert s.stats["nside"] == 256
+    small = studio[::4, ::4].copy()
+    ls = s.sample(small, 300)
+    assert s.stats["mode"] == "full"
+    assert s.stats["nside"] == 64
+    np.testing.assert_allclose(ls.total, equirect_integral(small), rtol=1e-9)
+    s.sample(studio, 300)
+    assert s.stats["mode"] == "full"

@@ -50,7 +50,8 @@ async def test_read_endpoints(tmp_path: Path) -> None:
 
     from device.imageio import read_exr_header, read_hdr_image
 
-    async with running_service(service_config(tmp_path)) as s, aiohttp.ClientSession() as c:
+    cfg = service_config(tmp_path, pipeline={"fps": 4.0, "light_count": 64})
+    async with running_service(cfg) as s, aiohttp.ClientSession() as c:
         await _wait_frames(c, s.api, 2)
         code, st = await _get_json(c, s.api + "/status")
         assert code == 200
@@ -66,16 +67,20 @@ async def test_read_endpoints(tmp_path: Path) -> None:
         assert code == 200
         assert len(lights["lights"]) == 64
         # on demand: the requested method and count, energy equal to the map's integral
-        code, od = await _get_json(c, s.api + "/lights", params={"method": "pharr", "count": "18"})
+        for _ in range(20):  # the on-demand set and the EXR must come from the same frame
+            code, od = await _get_json(c, s.api + "/lights", params={"method": "pharr", "count": "18"})
+            async with c.get(s.api + "/probe.exr") as r:
+                assert r.status == 200
+                assert r.content_type == "image/x-exr"
+                exr = await r.read()
+            (tmp_path / "p.exr").write_bytes(exr)
+            hdr = read_exr_header(tmp_path / "p.exr")
+            if str(od["frame"]) == hdr["frame"]:
+                break
         assert code == 200
         assert od["method"] == "pharr"
         assert len(od["lights"]) == 18
-        async with c.get(s.api + "/probe.exr") as r:
-            assert r.status == 200
-            assert r.content_type == "image/x-exr"
-            exr = await r.read()
-        (tmp_path / "p.exr").write_bytes(exr)
-        hdr = read_exr_header(tmp_path / "p.exr")
+        assert str(od["frame"]) == hdr["frame"]
         assert {"unit", "probe", "timestamp", "calibration_id"} <= set(hdr)
         img = read_hdr_image(tmp_path / "p.exr")
         total = np.sum([li["rgb"] for li in od["lights"]], axis=0)
@@ -93,6 +98,20 @@ async def test_read_endpoints(tmp_path: Path) -> None:
         code, h = await _get_json(c, s.api + "/healthz")
         assert code == 200
         assert h["ok"] is True
+        # the binary Q2-Tree for host-side merging: leaves carry the map's energy
+        from hostlink.q2encode import decode_q2tree
+
+        async with c.get(s.api + "/q2tree", params={"count": "16"}) as r:
+            assert r.status == 200
+            assert r.content_type == "application/x-lightprobe-q2tree"
+            tree = decode_q2tree(await r.read())
+            frame = int(r.headers["X-Lightprobe-Frame"])
+        assert 16 <= len(tree.uniq) <= 18  # each split adds 3 leaves to the 12 base faces
+        async with c.get(s.api + "/probe.exr") as r:  # (a later frame: compare energies loosely)
+            (tmp_path / "q.exr").write_bytes(await r.read())
+        assert frame >= 1
+        np.testing.assert_allclose(tree.rgb.sum(axis=0), equirect_integral(read_hdr_image(tmp_path / "q.exr")),
+                                   rtol=0.05)
         async with c.get(s.url + "/") as r:
             assert r.status == 200
             assert "text/html" in r.content_type
@@ -136,6 +155,7 @@ BAD_REQUESTS: list[tuple[str, str, Any, dict[str, str] | None, int, str | None]]
     ("PUT", "/config", b'{"pipeline": {"nside": 48}}', "auth", 400, "pipeline.nside"),
     ("PUT", "/config", b'{"probe": {"name": "\\u0000evil"}}', "auth", 400, "probe.name"),
     ("PUT", "/config", b'{"probe": {"colour": "red"}}', "auth", 400, "probe.colour"),
+    ("PUT", "/config", ('{"probe": {"name": "' + "\u00e9" * 40 + '"}}').encode(), "auth", 400, "probe.name"),
     ("PUT", "/config", b'{"nope": {}}', "auth", 400, "nope"),
     ("PUT", "/config", b'{"probe": {"name": "ok"}, "pipeline": {"fps": -1}}', "auth", 400, "pipeline.fps"),
     ("PUT", "/config", b'{"probe": {"name": "' + b"x" * 200_000 + b'"}}', "auth", 413, "body"),

@@ -30,7 +30,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["Distribution2D", "halton", "invert_linear_sample", "radical_inverse", "sample_linear"]
+__all__ = ["Distribution2D", "halton", "invert_linear_sample", "radical_inverse", "sample_linear",
+           "sample_one"]
 
 ONE_MINUS_EPSILON = float(np.nextafter(1.0, 0.0))
 
@@ -82,55 +83,66 @@ def _find_interval(cdf: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def sample_one(u0, u1, mcdf, seg_start, seg_width, seg_a, seg_b, row_cdf, row_int, func,
+               interpolate):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
+    """Compiled :meth:`Distribution2D.sample` of one point: ``(u, v, f(u, v))`` (unnormalised
+    density; the numpy methods ``pdf``/``invert`` check it in the tests)."""
+    nv, nu = func.shape
+    # Sample the marginal (u1) to get v
+    s, hi = 0, mcdf.shape[0] - 1  # largest s with mcdf[s] <= u1 (FindInterval)
+    while hi - s > 1:
+        mid = (s + hi) // 2
+        if mcdf[mid] <= u1:
+            s = mid
+        else:
+            hi = mid
+    c0, c1 = mcdf[s], mcdf[s + 1]
+    du = (u1 - c0) / (c1 - c0) if c1 > c0 else 0.0
+    a, b = seg_a[s], seg_b[s]
+    den = a + np.sqrt((1 - du) * a * a + du * b * b)
+    x = du * (a + b) / den if den > 0 else du  # SampleLinear (pbrt-v4 eq. A.6)
+    v = min(seg_start[s] + min(x, ONE_MINUS_EPSILON) * seg_width[s], ONE_MINUS_EPSILON)
+    # Rows and blend weight at v
+    if interpolate:
+        y = v * nv - 0.5
+        j0 = min(max(int(np.floor(y)), 0), nv - 1)
+        j1 = min(j0 + 1, nv - 1)
+        t = min(max(y - j0, 0.0), 1.0)
+    else:
+        j0 = min(int(v * nv), nv - 1)
+        j1 = j0
+        t = 0.0
+    if (1 - t) * row_int[j0] + t * row_int[j1] <= 0.0:
+        # v on the zero end of a linear segment (u1 exactly at a CDF step): use the segment's
+        # lit row, so no sample lands where the density is 0
+        j0 = j1 if row_int[j1] > 0.0 else j0
+        j1 = j0
+        t = 0.0
+    # Sample the (interpolated) conditional: largest k with G(k) <= target
+    target = u0 * ((1 - t) * row_int[j0] + t * row_int[j1])
+    lo, hi = 0, nu
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if (1 - t) * row_cdf[j0, mid] + t * row_cdf[j1, mid] <= target:
+            lo = mid
+        else:
+            hi = mid
+    g0 = (1 - t) * row_cdf[j0, lo] + t * row_cdf[j1, lo]
+    fk = (1 - t) * func[j0, lo] + t * func[j1, lo]
+    d = (target - g0) * nu / fk if fk > 0 else 0.5
+    return min((lo + min(max(d, 0.0), 1.0)) / nu, ONE_MINUS_EPSILON), v, fk
+
+
+@njit(cache=True)
 def _sample_kernel(u, mcdf, seg_start, seg_width, seg_a, seg_b, row_cdf, row_int, func,
                    interpolate):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
-    """Compiled :meth:`Distribution2D.sample` (same steps; the numpy methods pdf/invert check it)."""
     n = u.shape[0]
-    nv, nu = func.shape
     pts = np.empty((n, 2))
     pdf = np.empty(n)
-    nseg = mcdf.shape[0] - 1
     for i in range(n):
-        # Sample the marginal (u[i, 1]) to get v
-        s = np.searchsorted(mcdf, u[i, 1], side="right") - 1
-        s = min(max(s, 0), nseg - 1)
-        c0, c1 = mcdf[s], mcdf[s + 1]
-        du = (u[i, 1] - c0) / (c1 - c0) if c1 > c0 else 0.0
-        a, b = seg_a[s], seg_b[s]
-        den = a + np.sqrt((1 - du) * a * a + du * b * b)
-        x = du * (a + b) / den if den > 0 else du  # SampleLinear (pbrt-v4 eq. A.6)
-        v = min(seg_start[s] + min(x, ONE_MINUS_EPSILON) * seg_width[s], ONE_MINUS_EPSILON)
-        # Rows and blend weight at v
-        if interpolate:
-            y = v * nv - 0.5
-            j0 = min(max(int(np.floor(y)), 0), nv - 1)
-            j1 = min(j0 + 1, nv - 1)
-            t = min(max(y - j0, 0.0), 1.0)
-        else:
-            j0 = min(int(v * nv), nv - 1)
-            j1 = j0
-            t = 0.0
-        if (1 - t) * row_int[j0] + t * row_int[j1] <= 0.0:
-            # v on the zero end of a linear segment (u[i, 1] exactly at a CDF step): use the
-            # segment's lit row, so no sample lands where the density is 0
-            j0 = j1 if row_int[j1] > 0.0 else j0
-            j1 = j0
-            t = 0.0
-        # Sample the (interpolated) conditional: largest k with G(k) <= target
-        target = u[i, 0] * ((1 - t) * row_int[j0] + t * row_int[j1])
-        lo, hi = 0, nu
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if (1 - t) * row_cdf[j0, mid] + t * row_cdf[j1, mid] <= target:
-                lo = mid
-            else:
-                hi = mid
-        g0 = (1 - t) * row_cdf[j0, lo] + t * row_cdf[j1, lo]
-        fk = (1 - t) * func[j0, lo] + t * func[j1, lo]
-        d = (target - g0) * nu / fk if fk > 0 else 0.5
-        pts[i, 0] = min((lo + min(max(d, 0.0), 1.0)) / nu, ONE_MINUS_EPSILON)
-        pts[i, 1] = v
-        pdf[i] = fk
+        pts[i, 0], pts[i, 1], pdf[i] = sample_one(u[i, 0], u[i, 1], mcdf, seg_start, seg_width,
+                                                  seg_a, seg_b, row_cdf, row_int, func,
+                                                  interpolate)
     return pts, pdf
 
 
@@ -213,10 +225,14 @@ class Distribution2D:
     def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map uniform points ``u`` (N, 2) in [0,1)^2 to ``(points (N, 2), pdf (N,))``."""
         u = np.ascontiguousarray(u, np.float64).reshape(-1, 2)
-        pts, fk = _sample_kernel(u, self.marginal_cdf, self.seg_start, self.seg_width,
-                                 self.seg_a, self.seg_b, self.row_cdf, self.row_integral,
-                                 self.func, self.interpolate)
+        pts, fk = _sample_kernel(u, *self.kernel_args())
         return pts, fk / self.integral
+
+    def kernel_args(self) -> tuple[object, ...]:
+        """The arrays :func:`sample_one` takes after the point (for compiled callers)."""
+        return (self.marginal_cdf, self.seg_start, self.seg_width, self.seg_a, self.seg_b,
+                self.row_cdf, self.row_integral, np.ascontiguousarray(self.func),
+                self.interpolate)
 
     def pdf(self, pts: np.ndarray) -> np.ndarray:
         """Density (w.r.t. area on the unit square) of points (N, 2)."""

@@ -13,7 +13,8 @@ Per hemisphere (upper = rows whose centre is at or above the horizon, lower = th
    ``LOWER_ID_OFFSET + i`` (lower). **Stratum averaging** (ours, not in the paper): light ``i``
    is the normalised mean direction of ``k x k`` sub-samples, its Halton point plus a fixed
    pattern spanning ``stratum_scale / sqrt(n)`` (about its stratum) in primary sample space;
-   ``k = substeps`` or, by default, ``clip(sqrt(subsample_budget / n), 1, 8)``. Inverse-CDF
+   ``k = substeps`` or, by default, ``clip(subsample_budget // n, 1, 8)`` (8 up to 256 lights,
+   2 at 1000, 1 from 2048: averaging matters when each light carries a large share). Inverse-CDF
    samples jump when the map's mass moves across a dark gap; averaging k^2 sub-samples makes
    each jump move a light by ~1/k^2 of the distance. Measured on ``flashlight`` (N = 256,
    40 frames): flicker 0.0034 (k = 1) -> 0.0011 (k = 8); it costs some static accuracy where
@@ -63,7 +64,7 @@ from numba import njit
 from device.sphere import LUMINANCE_WEIGHTS, equirect_row_solid_angle, luminance
 
 from .base import LightSet
-from .distribution import ONE_MINUS_EPSILON, Distribution2D, halton
+from .distribution import ONE_MINUS_EPSILON, Distribution2D, halton, sample_one
 from .havran import PDF_UV_TO_OMEGA, hemisphere_to_square, square_to_hemisphere
 from .pharr import empty_lightset, rescale_to_total
 from .temporal import EnergyFilter, TrajectoryFilter
@@ -139,6 +140,33 @@ def _splat_kernel(img, pix, cell, weight, ncells):  # type: ignore[no-untyped-de
     return out, bad
 
 
+@njit(cache=True)
+def _splat_rows_kernel(img, cell, omega, ncells):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One sub-sample per pixel: out[cell[r, c]] += clean(img[r, c]) * omega[r]."""
+    out = np.zeros((ncells, 3))
+    bad = np.zeros(2, np.int64)
+    for r in range(img.shape[0]):
+        om = omega[r]
+        for c in range(img.shape[1]):
+            k = cell[r, c]
+            vr = np.float64(img[r, c, 0])
+            vg = np.float64(img[r, c, 1])
+            vb = np.float64(img[r, c, 2])
+            if not (vr >= 0.0 and vg >= 0.0 and vb >= 0.0 and vr + vg + vb < np.inf):
+                for v in (vr, vg, vb):  # slow path: count and zero invalid values
+                    if not np.isfinite(v):
+                        bad[0] += 1
+                    elif v < 0.0:
+                        bad[1] += 1
+                vr = vr if (vr >= 0.0 and vr < np.inf) else 0.0
+                vg = vg if (vg >= 0.0 and vg < np.inf) else 0.0
+                vb = vb if (vb >= 0.0 and vb < np.inf) else 0.0
+            out[k, 0] += vr * om
+            out[k, 1] += vg * om
+            out[k, 2] += vb * om
+    return out, bad
+
+
 class _Splat:
     """Precomputed pixel -> Havran-cell assignment of one map shape (both hemispheres)."""
 
@@ -167,13 +195,18 @@ class _Splat:
         self.pix = pix
         self.cell = cell
         self.weight = np.repeat(omega, w)[pix] / (s * s)  # sub-pixel solid angle (sums exactly)
+        self.omega = omega
+        self.cell_map = cell.astype(np.int32).reshape(h, w) if s == 1 else None
 
     def __call__(self, img: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
         """Cell energies (2, grid, grid, 3) = sum of radiance x solid angle (float64) and the
         counts of non-finite / negative values (read as 0)."""
-        flat = np.ascontiguousarray(img, np.float32).reshape(-1, 3)
+        img = np.ascontiguousarray(img, np.float32)
         n = 2 * self.grid * self.grid
-        out, bad = _splat_kernel(flat, self.pix, self.cell, self.weight, n)
+        if self.cell_map is not None:  # fast path: one sub-sample per pixel, pixel order
+            out, bad = _splat_rows_kernel(img, self.cell_map, self.omega, n)
+        else:
+            out, bad = _splat_kernel(img.reshape(-1, 3), self.pix, self.cell, self.weight, n)
         flags = {"nonfinite": int(bad[0]) // self.per_pixel, "negative": int(bad[1]) // self.per_pixel}
         return out.reshape(2, self.grid, self.grid, 3), flags
 
@@ -197,6 +230,40 @@ def _robust_centroid(sub: np.ndarray, iterations: int) -> np.ndarray:
     return d
 
 
+@njit(cache=True)
+def _stratum_kernel(pts, pattern, cells, lower, mcdf, seg_start, seg_width, seg_a, seg_b, row_cdf,
+                    row_int, func, interpolate):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Per light: sum of its sub-samples' directions (Havran forward map, probe frame), of their
+    cells' rgb and of 1 / f (unnormalised density). Same maths as ``square_to_hemisphere``."""
+    n, m, g = pts.shape[0], pattern.shape[0], cells.shape[0]
+    dsum = np.zeros((n, 3))
+    col = np.zeros((n, 3))
+    inv_f = np.zeros(n)
+    for i in range(n):
+        for j in range(m):
+            u0 = min(max(pts[i, 0] + pattern[j, 0], 0.0), ONE_MINUS_EPSILON)
+            u1 = min(max(pts[i, 1] + pattern[j, 1], 0.0), ONE_MINUS_EPSILON)
+            x, y, f = sample_one(u0, u1, mcdf, seg_start, seg_width, seg_a, seg_b, row_cdf,
+                                 row_int, func, interpolate)
+            a, b = 2.0 * x - 1.0, 2.0 * y - 1.0  # concentric square -> disc (Shirley-Chiu)
+            if abs(a) > abs(b):
+                r, phi = a, (np.pi / 4) * (b / a)
+            elif b != 0.0:
+                r, phi = b, np.pi / 2 - (np.pi / 4) * (a / b)
+            else:
+                r, phi = 0.0, 0.0
+            r2 = min(r * r, 1.0)  # Lambert disc -> hemisphere
+            sq = np.sqrt(2.0 - r2)
+            dsum[i, 0] += r * np.cos(phi) * sq
+            dsum[i, 1] += (r2 - 1.0) if lower else (1.0 - r2)
+            dsum[i, 2] -= r * np.sin(phi) * sq
+            ci, cj = min(int(y * g), g - 1), min(int(x * g), g - 1)
+            for ch in range(3):
+                col[i, ch] += cells[ci, cj, ch]
+            inv_f[i] += 1.0 / f if f > 0 else 0.0
+    return dsum, col, inv_f
+
+
 @lru_cache(maxsize=4)
 def _splat_for(h: int, w: int, grid: int) -> _Splat:
     """Shared, read-only pixel -> cell tables (building one costs ~0.5 s at 1024 x 512)."""
@@ -215,7 +282,7 @@ class HemigonSampler:
     min_power_fraction : lights below this fraction of the mean light luminance -> ambient.
     cluster_deg : merge lights closer than this angle (0 disables).
     substeps, stratum_scale, subsample_budget : stratum averaging (``substeps`` x ``substeps``
-        sub-samples per light over ``stratum_scale / sqrt(n)``; None = from the budget).
+        sub-samples per light over ``stratum_scale / sqrt(n)``; None = ``budget // n``, 1..8).
     mode_seeking : mean-shift steps of the stratum centroid (0 = plain centroid).
     """
 
@@ -225,7 +292,7 @@ class HemigonSampler:
                  trajectory_alpha: float = 1.0, trajectory_jump: float = 0.05,
                  ground: bool = False, min_power_fraction: float = 1e-3,
                  cluster_deg: float = 0.0, substeps: int | None = None,
-                 stratum_scale: float = 1.0, subsample_budget: int = 16384,
+                 stratum_scale: float = 1.0, subsample_budget: int = 2048,
                  mode_seeking: int = 0) -> None:
         if grid < 2:
             raise ValueError(f"grid must be >= 2, got {grid}")
@@ -263,7 +330,7 @@ class HemigonSampler:
             raise ValueError(f"expected an (H, W, 3) radiance map, got shape {img.shape}")
         h, w = img.shape[:2]
         splat = _splat_for(h, w, self.grid)
-        cells, flags = splat(img)
+        cells, flags = splat(img)  # (2, grid, grid, 3) float64, C-contiguous halves
         extra: dict[str, object] = {"sanitized": flags} if any(flags.values()) else {}
         totals = cells.reshape(2, -1, 3).sum(axis=1)
         y_tot = totals @ LUMINANCE_WEIGHTS
@@ -310,19 +377,26 @@ class HemigonSampler:
         self.distributions[int(lower)] = dist
         # Push light i's sub-samples (its Halton point + a fixed k x k pattern) through the CDFs
         pts = self._points(n)
-        k = self.substeps or int(np.clip(np.sqrt(self.subsample_budget / n), 1, 8))
+        k = self.substeps or int(np.clip(self.subsample_budget // n, 1, 8))
         if k > 1:
             off = ((np.arange(k) + 0.5) / k - 0.5) * self.stratum_scale / np.sqrt(n)
             pattern = np.stack(np.meshgrid(off, off), axis=-1).reshape(-1, 2)
-            pts = np.clip(pts[:, None, :] + pattern[None, :, :], 0.0, ONE_MINUS_EPSILON)
-        sub_uv, sub_pdf = dist.sample(pts.reshape(-1, 2))
-        m = len(sub_uv) // n
-        sub_dirs = square_to_hemisphere(sub_uv, lower=lower).reshape(n, m, 3)
-        g = self.grid
-        ij = np.minimum((sub_uv * g).astype(np.int64), g - 1)
-        col = cells[ij[:, 1], ij[:, 0]].reshape(n, m, 3).sum(axis=1)
-        # Light = (robust) centroid of its sub-samples, back to the square to filter
-        d = _robust_centroid(sub_dirs, self.mode_seeking)
+        else:
+            pattern = np.zeros((1, 2))
+        if self.mode_seeking == 0:  # compiled path: only the sums are needed
+            dsum, col, inv_f = _stratum_kernel(np.ascontiguousarray(pts), pattern, cells, lower,
+                                               *dist.kernel_args())
+            d = _normalise(dsum, np.array([0.0, -1.0 if lower else 1.0, 0.0]))
+            inv_pdf = inv_f / len(pattern) * dist.integral
+        else:
+            sub = np.clip(pts[:, None, :] + pattern[None, :, :], 0.0, ONE_MINUS_EPSILON)
+            sub_uv, sub_pdf = dist.sample(sub.reshape(-1, 2))
+            m = len(pattern)
+            sub_dirs = square_to_hemisphere(sub_uv, lower=lower).reshape(n, m, 3)
+            ij = np.minimum((sub_uv * self.grid).astype(np.int64), self.grid - 1)
+            col = cells[ij[:, 1], ij[:, 0]].reshape(n, m, 3).sum(axis=1)
+            d = _robust_centroid(sub_dirs, self.mode_seeking)  # (robust) centroid
+            inv_pdf = (1.0 / np.maximum(sub_pdf.reshape(n, m), 1e-300)).mean(axis=1)
         ids = np.arange(n, dtype=np.int64) + (LOWER_ID_OFFSET if lower else 0)
         uv = self._filter(ids, hemisphere_to_square(d, lower=lower), lower)
         dirs = square_to_hemisphere(uv, lower=lower)
@@ -331,8 +405,7 @@ class HemigonSampler:
         chroma = np.where(ycol[:, None] > 0, col / np.where(ycol > 0, ycol, 1.0)[:, None],
                           mean_col[None, :])
         rgb = rescale_to_total(chroma, total)  # equal luminance power Y_h / n, exact sums
-        pdf_omega = np.maximum(sub_pdf.reshape(n, m), 1e-300) * PDF_UV_TO_OMEGA
-        solid = np.minimum((1.0 / (n * pdf_omega)).mean(axis=1), 2 * np.pi)
+        solid = np.minimum(inv_pdf / (n * PDF_UV_TO_OMEGA), 2 * np.pi)  # mean 1 / (n pdf_omega)
         return dirs, rgb, solid, ids
 
     def _filter(self, ids: np.ndarray, uv: np.ndarray, lower: bool) -> np.ndarray:

@@ -247,6 +247,9 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     state_holder["s"] = st
     app[STATE] = st
     api.add_routes(app, Path(__file__).parent / "static")
+    from device.service import q2tree_api  # GET /api/v1/q2tree (binary tree for host-side merging)
+
+    q2tree_api.add_routes(app)
     app.cleanup_ctx.extend([_camera_ctx(make_camera), _pipeline_ctx, _mdns_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)
     return app

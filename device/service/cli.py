@@ -150,6 +150,21 @@ def _bind(host: str, port: int) -> socket.socket:
     return s
 
 
+def _exit_deadline(seconds: float) -> None:
+    """Guarantee the 3 s stop budget: a worker thread still inside a whole-frame stage (which
+    cannot be cancelled) would otherwise hold interpreter exit until it finishes."""
+    import threading
+
+    def hard_exit() -> None:
+        log.warning("worker threads still busy %.1f s after SIGTERM: exiting now", seconds)
+        logging.shutdown()
+        os._exit(0)
+
+    t = threading.Timer(seconds, hard_exit)
+    t.daemon = True
+    t.start()
+
+
 async def serve(a: argparse.Namespace) -> int:
     from aiohttp import web
 
@@ -185,6 +200,7 @@ async def serve(a: argparse.Namespace) -> int:
         loop.add_signal_handler(sig, stop.set)
     await stop.wait()
     t0 = time.monotonic()
+    _exit_deadline(2.9)
     log.info("shutting down")
     notifier.stopping()
     try:

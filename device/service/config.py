@@ -68,8 +68,8 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "nside": (int, 64, "a power of two in [1, 1024]", lambda v: 1 <= v <= 1024 and v & (v - 1) == 0),
     },
     "probe": {
-        "name": (str, "", "up to 63 printable characters, not starting with '.'",
-                 lambda v: v == "" or bool(_NAME_RE.match(v))),
+        "name": (str, "", "up to 63 bytes of UTF-8 without control characters, not starting with '.'",
+                 lambda v: v == "" or (bool(_NAME_RE.match(v)) and len(v.encode("utf-8")) <= 63)),
         "id": (str, "", "up to 32 characters [A-Za-z0-9_-] (empty = from machine-id)",
                lambda v: re.fullmatch(r"[A-Za-z0-9_-]{0,32}", v) is not None),
         "model": (str, "lightprobe-sim", "up to 63 printable characters",

@@ -24,9 +24,19 @@ from numba import njit
 from hostlink.relight.directions import DEPTH, NDIR, heap_index
 
 __all__ = [
-    "select_cut", "binary_cut", "dense", "cut_product", "cut_interpolate", "is_cut",
-    "encode_height", "decode_height", "encode_index", "decode_index",
-    "height_coded_nbytes", "index_coded_nbytes", "merge_cuts",
+    "binary_cut",
+    "cut_interpolate",
+    "cut_product",
+    "decode_height",
+    "decode_index",
+    "dense",
+    "encode_height",
+    "encode_index",
+    "height_coded_nbytes",
+    "index_coded_nbytes",
+    "is_cut",
+    "merge_cuts",
+    "select_cut",
 ]
 
 

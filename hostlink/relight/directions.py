@@ -24,9 +24,17 @@ from functools import lru_cache
 import numpy as np
 
 __all__ = [
-    "DEPTH", "NDIR", "SIDE", "LEAF_SOLID_ANGLE",
-    "leaf_directions", "direction_to_leaf", "node_directions", "cluster_compactness",
-    "heap_index", "morton_encode", "node_moments",
+    "DEPTH",
+    "LEAF_SOLID_ANGLE",
+    "NDIR",
+    "SIDE",
+    "cluster_compactness",
+    "direction_to_leaf",
+    "heap_index",
+    "leaf_directions",
+    "morton_encode",
+    "node_directions",
+    "node_moments",
 ]
 
 DEPTH = 15

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["brdf_spec", "shade_static", "shade_dynamic", "shade_dense"]
+__all__ = ["brdf_spec", "shade_dense", "shade_dynamic", "shade_static"]
 
 _INV_PI = 1.0 / np.pi
 _MAXC = 1 + 8 * 8
@@ -47,11 +47,10 @@ def brdf_spec(typ: int, p: float, n: np.ndarray, wx: float, wy: float, wz: float
     if typ == 2:                                           # Blinn-Phong: (p+8)/(8pi) (n.h)^p
         return (p + 8) * 0.125 * _INV_PI * ch ** p
     co = n[0] * ox + n[1] * oy + n[2] * oz                 # Ward (isotropic), Eq. 5
-    if co <= 0:
+    if co <= 0 or ci <= 0:
         return 0.0
-    ci = max(ci, 1e-2)
-    t2 = (1 - ch * ch) / (ch * ch)
-    return np.exp(-t2 / (p * p)) / (4 * np.pi * p * p * np.sqrt(ci * co))
+    t2 = (1 - ch * ch) / (ch * ch)                        # tan^2 of the half-vector angle
+    return np.exp(-t2 / (p * p)) / (4 * np.pi * p * p * np.sqrt(max(ci, 1e-2) * max(co, 1e-2)))
 
 
 @njit(cache=True, fastmath=True)
@@ -179,6 +178,36 @@ def _vcf_lookup(x: np.ndarray, center: np.ndarray, radii: np.ndarray, grid: int,
                 q += 1
 
 
+@njit(cache=True, fastmath=True)
+def _collect_vcf(x: np.ndarray, n: np.ndarray, own: int, centers: np.ndarray, obj_r: np.ndarray,
+                 radii: np.ndarray, grid: np.ndarray, pbase: np.ndarray, voffs: np.ndarray,
+                 p: np.ndarray, en: np.ndarray, w: np.ndarray) -> int:
+    """Append the 8 VCF cuts (and trilinear weights) of every movable object that can shadow x:
+    not x's own object, x inside the outermost sphere, bounding sphere not under x's horizon."""
+    pts = np.empty(8, np.int64)
+    wts = np.empty(8)
+    nc = 1
+    for mm in range(centers.shape[0]):
+        if mm == own or nc + 8 > _MAXC:
+            continue
+        dx = centers[mm, 0] - x[0]
+        dy = centers[mm, 1] - x[1]
+        dz = centers[mm, 2] - x[2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if d >= radii[mm, radii.shape[1] - 1]:                 # beyond the last sphere
+            continue
+        if dx * n[0] + dy * n[1] + dz * n[2] < -obj_r[mm]:     # under the horizon plane
+            continue
+        _vcf_lookup(x, centers[mm], radii[mm], grid[mm], pts, wts)
+        for q in range(8):
+            pt = pbase[mm] + pts[q]
+            p[nc] = voffs[pt]
+            en[nc] = voffs[pt + 1]
+            w[nc] = wts[q]
+            nc += 1
+    return nc
+
+
 @njit(cache=True, parallel=True, fastmath=True)
 def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np.ndarray,
                   matid: np.ndarray, mats: np.ndarray, offs: np.ndarray, hs: np.ndarray,
@@ -194,7 +223,6 @@ def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np
     traversed together with per-cut pointers and counters (Steps 1-4); an SVC node of value 0 is
     skipped whole (its leaf range contributes nothing).
     """
-    M = centers.shape[0]
     for t in prange(vidx.shape[0]):
         i = vidx[t]
         x = pos[i]
@@ -203,29 +231,9 @@ def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np
         en = np.empty(_MAXC, np.int64)
         c = np.zeros(_MAXC, np.int64)
         w = np.empty(_MAXC)
-        pts = np.empty(8, np.int64)
-        wts = np.empty(8)
         p[0] = offs[i]
         en[0] = offs[i + 1]
-        nc = 1
-        for mm in range(M):                                  # per-object culling, VCF lookup
-            if mm == own[i] or nc + 8 > _MAXC:
-                continue
-            dx = centers[mm, 0] - x[0]
-            dy = centers[mm, 1] - x[1]
-            dz = centers[mm, 2] - x[2]
-            d = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if d >= radii[mm, radii.shape[1] - 1]:
-                continue
-            if dx * n[0] + dy * n[1] + dz * n[2] < -obj_r[mm]:
-                continue
-            _vcf_lookup(x, centers[mm], radii[mm], grid[mm], pts, wts)
-            for q in range(8):
-                pt = pbase[mm] + pts[q]
-                p[nc] = voffs[pt]
-                en[nc] = voffs[pt + 1]
-                w[nc] = wts[q]
-                nc += 1
+        nc = _collect_vcf(x, n, own[i], centers, obj_r, radii, grid, pbase, voffs, p, en, w)
         ng = (nc - 1) // 8
         m = matid[i]
         lambert = mats[m, 0] == 0

@@ -34,8 +34,19 @@ from hostlink.relight.cuts import binary_cut, select_cut
 from hostlink.relight.directions import LEAF_SOLID_ANGLE, NDIR, leaf_directions
 from hostlink.relight.scene import Scene, vertex_normals
 
-__all__ = ["Precomputed", "VCF", "precompute", "default_cache_dir", "occluded", "build_embree",
-           "cube_points", "DEFAULT_TAU", "CACHE_VERSION", "scene_eps"]
+__all__ = [
+    "CACHE_VERSION",
+    "DEFAULT_TAU",
+    "VCF",
+    "Precomputed",
+    "build_embree",
+    "compute_vcf",
+    "cube_points",
+    "default_cache_dir",
+    "occluded",
+    "precompute",
+    "scene_eps",
+]
 
 DEFAULT_TAU = 2e-5
 CACHE_VERSION = 1
@@ -68,6 +79,7 @@ class Precomputed:
     tau: float = DEFAULT_TAU
     seconds: float = 0.0
     cached: bool = False
+    vcf_seconds: float = 0.0
 
 
 def default_cache_dir() -> Path:
@@ -145,7 +157,7 @@ def _svc_chunk(es, verts: np.ndarray, normals: np.ndarray, eps: float, tau: floa
         out.append(select_cut(leaf[k], tau, LEAF_SOLID_ANGLE))
 
 
-def _vcf_object(mesh_v: np.ndarray, mesh_f: np.ndarray, cfg: tuple[int, int, float, float],
+def compute_vcf(mesh_v: np.ndarray, mesh_f: np.ndarray, cfg: tuple[int, int, float, float],
                 tick: Callable[[int], None]) -> VCF:
     spheres, grid, inner, outer = cfg
     lo, hi = mesh_v.min(axis=0), mesh_v.max(axis=0)
@@ -162,7 +174,7 @@ def _vcf_object(mesh_v: np.ndarray, mesh_f: np.ndarray, cfg: tuple[int, int, flo
         chunk = pts[s:s + step]
         to_c = c - chunk
         d = np.linalg.norm(to_c, axis=1)
-        cos_cone = np.sqrt(np.clip(1 - (r / d) ** 2, 0, 1))
+        cos_cone = np.where(d > r, np.sqrt(np.clip(1 - (r / np.maximum(d, 1e-12)) ** 2, 0, 1)), -2.0)
         cone = (to_c / d[:, None]) @ dirs.T >= cos_cone[:, None] - 1e-6   # bounding-cone culling
         pi, di = np.nonzero(cone)
         occ = occluded(es, chunk[pi], dirs[di])
@@ -251,16 +263,18 @@ def precompute(scene: Scene, *, tau: float = DEFAULT_TAU, spheres: int = 32, gri
                 for i, c in zip(sel, out, strict=True):
                     cuts[i] = c
                 bar.advance(task, len(sel))
+        t_vcf = time.perf_counter()
         for k, o in enumerate(scene.objects):
             if o.movable:
                 t = bar.add_task(f"VCF {o.name}", total=cfg[0] * 6 * cfg[1] ** 2)
-                vcf[k] = _vcf_object(o.mesh.vertices, o.mesh.faces, cfg,
+                vcf[k] = compute_vcf(o.mesh.vertices, o.mesh.faces, cfg,
                                      lambda n, t=t: bar.advance(t, n))  # type: ignore[misc]
+        t_vcf = time.perf_counter() - t_vcf
     lens = np.array([len(h) for h, _ in cuts], np.int64)
     pc = Precomputed(verts, norms, oid, faces, fobj, np.concatenate([[0], np.cumsum(lens)]),
                      np.concatenate([h for h, _ in cuts]),
                      np.concatenate([v for _, v in cuts]).astype(np.float16).astype(np.float32),
-                     vcf, tau, time.perf_counter() - t0)
+                     vcf, tau, time.perf_counter() - t0, False, t_vcf)
     _save(path, pc)
     return pc
 
@@ -275,7 +289,8 @@ def _save(path: Path, pc: Precomputed) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {
         "svc_offsets": pc.svc_offsets, "svc_heights": pc.svc_heights,
-        "svc_values": pc.svc_values.astype(np.float16), "seconds": np.array(pc.seconds)}
+        "svc_values": pc.svc_values.astype(np.float16), "seconds": np.array(pc.seconds),
+        "vcf_seconds": np.array(pc.vcf_seconds)}
     for k, f in pc.vcf.items():
         for name in ("center", "radii", "offsets", "heights", "values"):
             arrays[f"vcf{k}_{name}"] = getattr(f, name)
@@ -297,6 +312,7 @@ def _load(path: Path, verts: np.ndarray, norms: np.ndarray, oid: np.ndarray, fac
                 vcf[k] = VCF(z[f"vcf{k}_center"], float(meta[0]), z[f"vcf{k}_radii"], int(meta[1]),
                              z[f"vcf{k}_offsets"], z[f"vcf{k}_heights"], z[f"vcf{k}_values"])
         return Precomputed(verts, norms, oid, faces, fobj, z["svc_offsets"], z["svc_heights"],
-                           z["svc_values"].astype(np.float32), vcf, tau, float(z["seconds"]), True)
+                           z["svc_values"].astype(np.float32), vcf, tau, float(z["seconds"]), True,
+                           float(z["vcf_seconds"]))
     except (OSError, KeyError, ValueError):
         return None   # unreadable cache entry: recompute

@@ -30,7 +30,7 @@ from hostlink.relight.lighting import (
 from hostlink.relight.precompute import Precomputed
 from hostlink.relight.scene import Camera, Material, Scene
 
-__all__ = ["Relighter", "Raster", "rasterize", "tonemap", "camera_basis"]
+__all__ = ["Raster", "Relighter", "camera_basis", "rasterize", "tonemap"]
 
 
 @dataclass

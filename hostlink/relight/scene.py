@@ -28,8 +28,17 @@ import numpy as np
 
 from device.errors import InputError
 
-__all__ = ["Mesh", "Material", "SceneObject", "Camera", "Scene", "load_obj", "load_scene",
-           "MATERIAL_TYPES", "vertex_normals"]
+__all__ = [
+    "MATERIAL_TYPES",
+    "Camera",
+    "Material",
+    "Mesh",
+    "Scene",
+    "SceneObject",
+    "load_obj",
+    "load_scene",
+    "vertex_normals",
+]
 
 MATERIAL_TYPES = {"lambert": 0, "phong": 1, "blinn-phong": 2, "ward": 3}
 

@@ -172,24 +172,12 @@ def build_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
 
 
 @njit(cache=True)
-def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
-                split: np.ndarray, n_splits: int, hysteresis: float, in_s: np.ndarray,
-                eff: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """Incremental split-merge from the previous frame's tree to ``n_splits`` splits.
-
-    ``split`` holds the previous split nodes sorted by id and ``in_s`` flags them. The keys are
-    re-evaluated for the new map (O(1) per node from the pyramid), then (1) the count is adjusted
-    by splitting the best leaves or merging the worst mergeable parents, then (2) the best leaf
-    is split and the worst mergeable parent merged while ``key(leaf) > (1 + hysteresis) key(parent)``
-    (with zero hysteresis: while the leaf ranks above the parent in the total order). With zero
-    hysteresis the result is the split set of ``build_tree`` on the same map: if the sets differ,
-    a best-ranked missing node is a leaf and a worst-ranked surplus node is mergeable, and it
-    ranks below that leaf, so a swap is still available (Wan et al. 2005, incremental update).
-
-    Returns (split ids sorted, number of splits done, number of merges done).
-    """
-    # Re-evaluate the keys (parents first: ``split`` is sorted) and collect the candidate
-    # leaves (max-heap) and mergeable parents (min-heap, stored negated) in the same pass
+def _candidates(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
+                split: np.ndarray, in_s: np.ndarray, eff: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int]:
+    """Re-evaluate the keys of the roots, the split nodes (sorted: parents first) and their
+    children in one pass, collecting the splittable leaves (lk, li, ls: max-heap entries) and
+    the mergeable parents (mk, mi, ms: min-heap entries stored as (-key, -id)); not heapified."""
     cap = 16 + 4 * len(split)
     lk = np.empty(cap, np.float64)
     li = np.empty(cap, np.int64)
@@ -222,48 +210,87 @@ def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
             mk[ms] = -e_u
             mi[ms] = -u
             ms += 1
+    return lk, li, ls, mk, mi, ms
+
+
+@njit(cache=True, inline="always")
+def _swap_pays(ka: float, ua: int, kb: float, ub: int, hysteresis: float) -> bool:
+    """Split leaf a for merging parent b? With a margin: key(a) > (1 + h) key(b); without:
+    the exact total order (so zero hysteresis reproduces a fresh build)."""
+    if hysteresis > 0.0:
+        return ka > (1.0 + hysteresis) * kb
+    return _above(ka, ua, kb, ub)
+
+
+@njit(cache=True)
+def _top(keys: np.ndarray, ids: np.ndarray, size: int) -> int:
+    """Index of the best entry of an unsorted candidate array (linear scan)."""
+    best = 0
+    for j in range(1, size):
+        if _above(keys[j], ids[j], keys[best], ids[best]):
+            best = j
+    return best
+
+
+@njit(cache=True)
+def _collect(split: np.ndarray, added: np.ndarray, n_added: int, in_s: np.ndarray,
+             count: int) -> np.ndarray:
+    """The new split set, sorted: survivors of ``split`` plus nodes split now (a node merged
+    and re-split appears in both lists; a temporary mark 2 keeps it once)."""
+    out = np.empty(count, np.int64)
+    n = 0
+    for j in range(len(split) + n_added):
+        u = split[j] if j < len(split) else added[j - len(split)]
+        if in_s[u] == 1:
+            in_s[u] = 2
+            out[n] = u
+            n += 1
+    for j in range(n):
+        in_s[out[j]] = 1
+    return np.sort(out[:n])
+
+
+@njit(cache=True)
+def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
+                split: np.ndarray, n_splits: int, hysteresis: float, in_s: np.ndarray,
+                eff: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """Incremental split-merge from the previous frame's tree to ``n_splits`` splits.
+
+    ``split`` holds the previous split nodes sorted by id and ``in_s`` flags them. The keys are
+    re-evaluated for the new map (O(1) per node from the pyramid), then (1) the count is adjusted
+    by splitting the best leaves or merging the worst mergeable parents, then (2) the best leaf
+    is split and the worst mergeable parent merged while ``_swap_pays``. With zero hysteresis
+    the result is the split set of ``build_tree`` on the same map: if the sets differ, a
+    best-ranked missing node is a leaf and a worst-ranked surplus node is mergeable, and it
+    ranks below that leaf, so a swap is still available; every swap raises the split set in
+    the total order, so the loop ends (Wan et al. 2005, incremental update).
+
+    Returns (split ids sorted, number of splits done, number of merges done).
+    """
+    lk, li, ls, mk, mi, ms = _candidates(lum, scale, a, max_level, split, in_s, eff)
     count = len(split)
     if count == n_splits and ls > 0 and ms > 0:
         # Common case of a slowly changing map: no swap pays, nothing to sort
-        j_leaf = 0
-        for j in range(1, ls):
-            if _above(lk[j], li[j], lk[j_leaf], li[j_leaf]):
-                j_leaf = j
-        j_merge = 0
-        for j in range(1, ms):
-            if _above(mk[j], mi[j], mk[j_merge], mi[j_merge]):
-                j_merge = j
-        ka, ua, kb, ub = lk[j_leaf], li[j_leaf], -mk[j_merge], -mi[j_merge]
-        swap = ka > (1.0 + hysteresis) * kb if hysteresis > 0.0 else _above(ka, ua, kb, ub)
-        if not swap:
+        ja, jb = _top(lk, li, ls), _top(mk, mi, ms)
+        if not _swap_pays(lk[ja], li[ja], -mk[jb], -mi[jb], hysteresis):
             return split.copy(), 0, 0
     _heapify(lk, li, ls)
     _heapify(mk, mi, ms)
     added = np.empty(16, np.int64)
-    n_added = 0
-    n_split_ops = 0
-    n_merge_ops = 0
+    n_added = n_split_ops = n_merge_ops = 0
     while True:
         # Drop stale heap tops (lazy deletion)
         while ls > 0 and not _is_leaf(in_s, li[0], _level(li[0]), max_level):
             ls = _heap_pop(lk, li, ls)
         while ms > 0 and not _is_mergeable(in_s, -mi[0]):
             ms = _heap_pop(mk, mi, ms)
-        do_split = False
-        do_merge = False
         if count < n_splits:
-            do_split = ls > 0
-            if not do_split:
-                break
+            do_split, do_merge = ls > 0, False
         elif count > n_splits:
-            do_merge = ms > 0
-        elif ls > 0 and ms > 0:
-            ka, ua = lk[0], li[0]
-            kb, ub = -mk[0], -mi[0]
-            # with a margin: key(leaf) > (1 + h) key(parent); without: the exact total order
-            better = ka > (1.0 + hysteresis) * kb if hysteresis > 0.0 else _above(ka, ua, kb, ub)
-            do_split = better
-            do_merge = better
+            do_split, do_merge = False, ms > 0
+        else:
+            do_split = ls > 0 and ms > 0 and _swap_pays(lk[0], li[0], -mk[0], -mi[0], hysteresis)
+            do_merge = do_split
         if not do_split and not do_merge:
             break
         if do_split:
@@ -275,9 +302,7 @@ def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
             count += 1
             n_split_ops += 1
             if n_added == len(added):
-                grown = np.empty(2 * len(added), np.int64)
-                grown[:n_added] = added[:n_added]
-                added = grown
+                added = np.concatenate((added, np.empty(len(added), np.int64)))
             added[n_added] = u
             n_added += 1
             _children_keys(lum, u, level, scale, a, eff)
@@ -297,38 +322,37 @@ def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
             lk, li, ls = _heap_push(lk, li, ls, eff[u], u)
             if u >= 16 and _is_mergeable(in_s, u >> 2):
                 mk, mi, ms = _heap_push(mk, mi, ms, -eff[u >> 2], -(u >> 2))
-    # Collect the split set: survivors of the previous set plus the nodes split now
-    out = np.empty(count, np.int64)
-    n = 0
-    for j in range(len(split)):
-        if in_s[split[j]] == 1:
-            in_s[split[j]] = 2  # mark as collected: a node may be merged and re-split
-            out[n] = split[j]
-            n += 1
-    for j in range(n_added):
-        u = added[j]
-        if in_s[u] == 1:
-            in_s[u] = 2
-            out[n] = u
-            n += 1
-    for j in range(n):
-        in_s[out[j]] = 1
-    return np.sort(out[:n]), n_split_ops, n_merge_ops
+    return _collect(split, added, n_added, in_s, count), n_split_ops, n_merge_ops
 
 
 # -- the per-frame pyramid of node sums ----------------------------------------------------------
 @njit(cache=True)
 def bin_equirect(flat: np.ndarray, order: np.ndarray, present: np.ndarray, starts: np.ndarray,
                  omega: np.ndarray, dirs: np.ndarray, weights: np.ndarray, moments: bool,
-                 offset: int, rgb: np.ndarray, lum: np.ndarray, moment: np.ndarray) -> None:
+                 offset: int, n_fine: int, rgb: np.ndarray, lum: np.ndarray,
+                 moment: np.ndarray) -> None:
     """Finest-level node sums from equirect pixels grouped by the HEALPix pixel holding their
     centre: ``order`` lists the (H*W) pixels sorted by that pixel, run k (from ``starts[k]``)
     belongs to node ``offset + present[k]``; ``omega`` / ``dirs`` are the sorted pixels' exact
-    solid angles and centre directions. Each node gets radiance x solid angle (rgb, luminance)
-    and, if ``moments``, luminance x direction; nodes with no pixel are left untouched."""
+    solid angles and centre directions. Each of the ``n_fine`` finest nodes gets radiance x
+    solid angle (rgb, luminance) and, if ``moments``, luminance x direction; 0 if no pixel."""
     n = len(present)
     total = len(order)
-    for k in range(n):
+    gap = 0  # next finest node not yet written: zero the nodes no pixel falls into
+    for k in range(n + 1):
+        stop = present[k] if k < n else n_fine
+        for g in range(offset + gap, offset + stop):
+            rgb[g, 0] = 0.0
+            rgb[g, 1] = 0.0
+            rgb[g, 2] = 0.0
+            lum[g] = 0.0
+            if moments:
+                moment[g, 0] = 0.0
+                moment[g, 1] = 0.0
+                moment[g, 2] = 0.0
+        gap = stop + 1
+        if k == n:
+            break
         end = starts[k + 1] if k + 1 < n else total
         a0 = 0.0
         a1 = 0.0

@@ -129,7 +129,6 @@ class _Bins:
     starts: np.ndarray
     omega: np.ndarray
     dirs: np.ndarray
-    holes: np.ndarray  # NESTED pixels that hold no equirect pixel centre
 
 
 @functools.lru_cache(maxsize=4)
@@ -141,9 +140,8 @@ def _equirect_bins(height: int, nside: int) -> _Bins:
     hp_sorted = hp[order]
     starts = np.flatnonzero(np.r_[True, hp_sorted[1:] != hp_sorted[:-1]])
     present = hp_sorted[starts]
-    holes = np.setdiff1d(np.arange(12 * nside * nside), present)
     omega = np.repeat(equirect_row_solid_angle(height, width), width)[order]
-    return _Bins(order, present, starts, omega, np.ascontiguousarray(dirs[order]), holes)
+    return _Bins(order, present, starts, omega, np.ascontiguousarray(dirs[order]))
 
 
 def pyramid_from_equirect(clean: np.ndarray, nside: int, moments: bool,
@@ -159,14 +157,9 @@ def pyramid_from_equirect(clean: np.ndarray, nside: int, moments: bool,
     """
     bins = _equirect_bins(clean.shape[0], nside)
     rgb, lum, moment = _buffers(nside, moments, reuse)
-    lo = 4 * nside * nside
-    rgb[lo + bins.holes] = 0.0
-    lum[lo + bins.holes] = 0.0
-    if moments:
-        moment[lo + bins.holes] = 0.0
     bin_equirect(np.ascontiguousarray(clean, np.float32).reshape(-1, 3), bins.order,
                  bins.present, bins.starts, bins.omega, bins.dirs, LUMINANCE_WEIGHTS, moments,
-                 lo, rgb, lum, moment)
+                 4 * nside * nside, 12 * nside * nside, rgb, lum, moment)
     return _finish(nside, moments, rgb, lum, moment)
 
 

@@ -135,17 +135,18 @@ class Q2TreeSampler:
         self.error_target = error_target
         self.stats: dict[str, Any] = {}
         self._buffer: Pyramid | None = None  # pyramid arrays reused frame to frame
-        self.reset()
+        # Tree state: dense per-node flags (split or not) and keys by NUNIQ id, sized on the
+        # first frame of a given nside and kept across reset()
+        self._nside = 0
+        self._in_s: np.ndarray = np.zeros(0, np.uint8)
+        self._eff: np.ndarray = np.zeros(0, np.float64)
+        self._split: np.ndarray = np.zeros(0, np.int64)
+        self._has_tree = False
 
     # -- state ------------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the tree: the next frame is a full build (work arrays are kept)."""
-        if getattr(self, "_nside", 0):
-            self._in_s[self._split] = 0
-        else:
-            self._nside = 0
-            self._in_s = np.zeros(0, np.uint8)
-            self._eff = np.zeros(0, np.float64)
+        self._in_s[self._split] = 0
         self._split = np.zeros(0, np.int64)
         self._has_tree = False
 
@@ -256,6 +257,7 @@ class Q2TreeSampler:
             self._nside = pyr.nside
             self._in_s = np.zeros(16 * pyr.nside * pyr.nside, np.uint8)
             self._eff = np.zeros(16 * pyr.nside * pyr.nside, np.float64)
+            self._split = np.zeros(0, np.int64)
             self._has_tree = False
         if not self._has_tree:
             self._in_s[self._split] = 0

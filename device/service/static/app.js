@@ -24,12 +24,24 @@
   }
 
   // ---- lights on the equirect view (CONVENTIONS.md: theta from +y, phi = atan2(x, -z)) --------------
+  // Show only the upper hemisphere when no light lies below the horizon (the usual case: the
+  // fisheye sees the upper hemisphere and the pipeline zeroes the rest).
+  function setCrop(upper) {
+    const wrap = $("pano-wrap");
+    if (wrap.classList.contains("upper") === upper) return;
+    wrap.classList.toggle("upper", upper);
+    $("label-bottom").textContent = upper ? "horizon" : "nadir";
+    $("label-mid").hidden = upper;
+  }
+
   function drawLights() {
     const canvas = $("lights"), img = $("pano");
-    const w = img.clientWidth, h = img.clientHeight;
+    const w = img.clientWidth, h = img.clientHeight;  // the full equirect image (2:1)
     if (!w || !h) return;
     const dpr = window.devicePixelRatio || 1;
-    canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr);
+    const shownH = $("pano-wrap").classList.contains("upper") ? h / 2 : h;
+    canvas.style.height = shownH + "px";
+    canvas.width = Math.round(w * dpr); canvas.height = Math.round(shownH * dpr);
     const ctx = canvas.getContext("2d");
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     ctx.clearRect(0, 0, w, h);
@@ -59,6 +71,10 @@
 
   function showLights(d) {
     lastLights = d;
+    const lumOf = (l) => 0.2126 * l.rgb[0] + 0.7152 * l.rgb[1] + 0.0722 * l.rgb[2];
+    const total = d.lights.reduce((a, l) => a + Math.max(0, lumOf(l)), 0);
+    const below = d.lights.filter((l) => l.direction[1] < -0.1).reduce((a, l) => a + Math.max(0, lumOf(l)), 0);
+    setCrop(total > 0 && below <= 1e-3 * total);
     $("light-count").textContent = d.lights.length;
     $("light-method").textContent = d.method || "—";
     $("light-stale").hidden = !d.stale;

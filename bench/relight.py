@@ -1,0 +1,232 @@
+"""``lightprobe bench relight [--quick]``: cut relighting against a brute-force reference.
+
+Scenes: ``../shared/data/meshes/spot.obj`` on a ground plane.
+* A (accuracy): spot static, ground 25 x 25 vertices (3,555 vertices). For each tau: SVC precompute
+  time, mean cut size, data size height- vs index-coded, and per-vertex luminance error against the
+  brute-force reference (same 2^15 directions, full ray-cast visibility, same BRDFs) under the six
+  shared maps, with and without the cosine-moment correction (without = the paper's plain Eq. 3).
+  Error metric: relative RMS over vertices, sqrt(sum (Y - Y_ref)^2 / sum Y_ref^2), Y = Rec.709
+  luminance of the outgoing radiance towards the camera; the reference uses every ``stride``-th vertex.
+* B (speed, 20k vertices): ground 131 x 131 + spot = 20,091 vertices; spot movable with a VCF
+  (paper: 32 spheres, 6 x 32^2 points; quick: 8 spheres, 6 x 8^2) and, separately, spot static.
+  Frame time for light / BRDF / view changes (static scene) and for a moving occluder, shading all
+  20,091 vertices and shading only the ID-buffer-visible ones at 640 x 480.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT.parent / "shared" / "data"
+MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
+        "dikhololo_night_1k.hdr", "interior_blender.exr"]
+
+
+def _scene_file(d: Path, movable: bool, res: int, width: int = 320, height: int = 240) -> Path:
+    doc = {"version": 1,
+           "materials": {"clay": {"type": "phong", "kd": [0.6, 0.5, 0.4], "ks": [0.2, 0.2, 0.2], "exponent": 20},
+                         "floor": {"type": "lambert", "kd": [0.5, 0.5, 0.5]}},
+           "objects": [{"name": "spot", "mesh": str((SHARED / "meshes" / "spot.obj").resolve()),
+                        "material": "clay", "movable": movable}],
+           "ground": {"y": "auto", "size": 3.0, "resolution": res, "material": "floor"},
+           "camera": {"position": [2.0, 1.2, 2.5], "look_at": [0, -0.2, 0.4], "fov_deg": 40,
+                      "width": width, "height": height}}
+    p = d / f"spot_{'movable' if movable else 'static'}_{res}.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def _rel_rms(y: np.ndarray, yr: np.ndarray) -> float:
+    return float(np.sqrt(((y - yr) ** 2).sum() / max((yr ** 2).sum(), 1e-300)))
+
+
+def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
+    from hostlink.relight.cuts import height_coded_nbytes, index_coded_nbytes
+
+    lens = np.diff(offsets)
+    return (int(sum(height_coded_nbytes(int(n), kind) for n in lens)),
+            int(sum(index_coded_nbytes(int(n), kind) for n in lens)))
+
+
+def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
+    from device.sphere import luminance
+    from hostlink.relight.precompute import precompute
+    from hostlink.relight.reference import reference_radiance
+    from hostlink.relight.render import Relighter
+    from hostlink.relight.scene import load_scene
+
+    scene = load_scene(_scene_file(d, False, 24))
+    taus = [1e-4, 2e-5] if quick else [1e-4, 5e-5, 2e-5, 1e-5, 5e-6]
+    stride = 9 if quick else 3
+    rows: list[dict[str, Any]] = []
+    ref = None
+    for tau in taus:
+        pre = precompute(scene, tau=tau, cache_dir=d / "cache", progress=False)
+        rl = Relighter(scene, pre)
+        vidx = np.arange(0, len(pre.vertices), stride)
+        eye = scene.camera.position
+        if ref is None:
+            t0 = time.perf_counter()
+            ref = reference_radiance(rl, leaf_lights, eye, vidx)
+            ref_s = time.perf_counter() - t0
+        hb, ib = _sizes(pre.svc_offsets, "f16")
+        row: dict[str, Any] = {"tau": tau, "precompute_s": round(pre.seconds, 2), "vertices": len(pre.vertices),
+                               "mean_svc_nodes": float(np.diff(pre.svc_offsets).mean()),
+                               "svc_bytes_height": hb, "svc_bytes_index": ib, "maps": {}}
+        for moment in (True, False):
+            rl.moment = moment
+            for mi, name in enumerate(MAPS):
+                rl.set_leaf_light(leaf_lights[mi])
+                b, _ = rl.vertex_radiance(eye, vidx)
+                y, yr = luminance(b), luminance(ref[mi])
+                rel = np.abs(y - yr) / np.maximum(yr, 1e-12)
+                row["maps"].setdefault(name, {})["moment" if moment else "plain"] = {
+                    "rel_rms": round(_rel_rms(y, yr), 5), "median_rel": round(float(np.median(rel)), 5),
+                    "p95_rel": round(float(np.percentile(rel, 95)), 5)}
+        rows.append(row)
+    return {"stride": stride, "reference_s": round(ref_s, 2), "rows": rows}
+
+
+def _timeit(fn, reps: int) -> float:  # type: ignore[no-untyped-def]
+    fn()
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts)) * 1000.0
+
+
+def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]) -> dict[str, Any]:
+    from device.sphere import luminance
+    from hostlink.relight.precompute import precompute
+    from hostlink.relight.reference import reference_radiance
+    from hostlink.relight.render import Relighter, rasterize
+    from hostlink.relight.scene import Material, load_scene
+
+    spheres, grid = (8, 8) if quick else (32, 32)
+    reps = 3 if quick else 7
+    out: dict[str, Any] = {"vcf_spheres": spheres, "vcf_grid": grid}
+    dyn_scene = load_scene(_scene_file(d, True, 130, 640, 480))
+    dyn = precompute(dyn_scene, spheres=spheres, grid=grid, cache_dir=d / "cache", progress=False)
+    st_scene = load_scene(_scene_file(d, False, 130, 640, 480))
+    st = precompute(st_scene, cache_dir=d / "cache", progress=False)
+    out["vertices"] = len(st.vertices)
+    out["precompute_static_s"] = round(st.seconds, 1)
+    out["precompute_movable_total_s"] = round(dyn.seconds, 1)
+    out["precompute_vcf_s"] = round(dyn.vcf_seconds, 1)
+    f = dyn.vcf[0]
+    out["vcf_points"] = len(f.offsets) - 1
+    out["vcf_mean_nodes"] = float(np.diff(f.offsets).mean())
+    out["mean_svc_nodes_static"] = float(np.diff(st.svc_offsets).mean())
+    # data sizes on the movable scene: SVC (float16 values) + VCF (1-bit values)
+    sh, si = _sizes(dyn.svc_offsets, "f16")
+    vh, vi = _sizes(f.offsets, "binary")
+    out["bytes"] = {"svc_height": sh, "svc_index": si, "vcf_height": vh, "vcf_index": vi,
+                    "ratio_svc": round(sh / si, 4), "ratio_vcf": round(vh / vi, 4),
+                    "ratio_total": round((sh + vh) / (si + vi), 4)}
+    # frame times
+    cam = st_scene.camera
+    rls = Relighter(st_scene, st)
+    rls.set_leaf_light(leaf_lights[1])
+    raster = rasterize(cam, st.vertices, st.faces)
+    eye = cam.position
+    allv = np.arange(len(st.vertices))
+    ms: dict[str, float] = {}
+    ms["static_all_vertices_shade"] = _timeit(lambda: rls.vertex_radiance(eye, allv), reps)
+    ms["static_light_change"] = _timeit(lambda: (rls.set_equirect(maps[2]), rls.render(raster=raster)), reps)
+    ms["static_brdf_change"] = _timeit(lambda: (rls.set_material("clay", Material("ward", (0.5, 0.4, 0.3), (0.3, 0.3, 0.3), alpha=0.2)),
+                                                rls.render(raster=raster)), reps)
+    ms["static_view_change"] = _timeit(lambda: rls.render(), reps)
+    rld = Relighter(dyn_scene, dyn)
+    rld.set_leaf_light(leaf_lights[1])
+    step = iter(np.linspace(0, 0.6, 1000))
+    ms["moving_all_vertices_shade"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
+                                                       rld.vertex_radiance(eye, allv)), reps)
+    ms["moving_frame"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]), rld.render()), reps)
+    out["frame_ms"] = {k: round(v, 1) for k, v in ms.items()}
+    _, nodes = rld.vertex_radiance(eye, allv)
+    out["moving_mean_merged_nodes"] = float(nodes.mean())
+    # dynamic (VCF) error against the brute force with the spot moved by 0.3 along x
+    rld.move("spot", [0.3, 0, 0])
+    vidx = np.arange(0, len(dyn.vertices), 40 if quick else 10)
+    ref = reference_radiance(rld, leaf_lights, eye, vidx)
+    errs = {}
+    for mi, name in enumerate(MAPS):
+        rld.set_leaf_light(leaf_lights[mi])
+        b, _ = rld.vertex_radiance(eye, vidx)
+        y, yr = luminance(b), luminance(ref[mi])
+        rel = np.abs(y - yr) / np.maximum(yr, 1e-12)
+        errs[name] = {"rel_rms": round(_rel_rms(y, yr), 4), "median_rel": round(float(np.median(rel)), 4)}
+    out["moving_error_vs_reference"] = errs
+    return out
+
+
+def _plots(out_dir: Path, acc: dict[str, Any], speed: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    taus = [r["tau"] for r in acc["rows"]]
+    for name in MAPS:
+        ax[0].loglog(taus, [r["maps"][name]["moment"]["rel_rms"] for r in acc["rows"]], "o-", label=name[:14])
+        ax[0].loglog(taus, [r["maps"][name]["plain"]["rel_rms"] for r in acc["rows"]], "x:", color=ax[0].lines[-1].get_color())
+    ax[0].axhline(0.02, color="k", lw=0.8)
+    ax[0].set(xlabel="tau (sr)", ylabel="relative RMS luminance error", title="SVC error (o moment, x plain)")
+    ax[0].legend(fontsize=7)
+    ax[1].loglog(taus, [r["mean_svc_nodes"] for r in acc["rows"]], "o-", label="mean SVC nodes")
+    ax[1].loglog(taus, [r["svc_bytes_height"] / 1e6 for r in acc["rows"]], "s-", label="MB height-coded")
+    ax[1].loglog(taus, [r["svc_bytes_index"] / 1e6 for r in acc["rows"]], "^-", label="MB index-coded")
+    ax[1].set(xlabel="tau (sr)", title="cut size and data size (3,555 vertices)")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out_dir / "relight_tau.png", dpi=100)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    fm = speed["frame_ms"]
+    ax.barh(list(fm), list(fm.values()))
+    ax.set(xlabel="ms (median)", title=f"frame time, {speed['vertices']} vertices, this machine")
+    fig.tight_layout()
+    fig.savefig(out_dir / "relight_frame_ms.png", dpi=100)
+    plt.close(fig)
+
+
+def run(out_dir: Path, quick: bool) -> dict[str, Any]:
+    from device.imageio import read_hdr_image
+    from hostlink.relight.directions import cluster_compactness
+    from hostlink.relight.lighting import leaf_light_from_equirect
+    from hostlink.relight.precompute import default_cache_dir
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    d = default_cache_dir() / "bench"              # scene files + precompute cache, outside the repo
+    d.mkdir(parents=True, exist_ok=True)
+    maps = [read_hdr_image(SHARED / "envmaps" / m) for m in MAPS]
+    leaf_lights = np.stack([leaf_light_from_equirect(m) for m in maps])
+    acc = _accuracy(d, quick, leaf_lights)
+    speed = _speed(d, quick, leaf_lights, maps)
+    comp = {str(k): round(v, 2) for k, v in cluster_compactness().items()}
+    default = next(r for r in acc["rows"] if r["tau"] == 2e-5)
+    summary = {
+        "quick": quick,
+        "default_tau": 2e-5,
+        "max_rel_rms_default_tau_moment": max(v["moment"]["rel_rms"] for v in default["maps"].values()),
+        "max_rel_rms_default_tau_plain": max(v["plain"]["rel_rms"] for v in default["maps"].values()),
+        "frame_ms": speed["frame_ms"],
+        "precompute_spot_3555v_svc_s": default["precompute_s"],
+        "precompute_20k_static_s": speed["precompute_static_s"],
+        "precompute_20k_movable_total_s": speed["precompute_movable_total_s"],
+        "precompute_vcf_s": speed["precompute_vcf_s"],
+        "bytes": speed["bytes"],
+    }
+    result = {"summary": summary, "accuracy": acc, "speed": speed, "compactness_deg_per_level": comp}
+    (out_dir / "relight.json").write_text(json.dumps(result, indent=1))
+    _plots(out_dir, acc, speed)
+    return result

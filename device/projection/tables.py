@@ -1,0 +1,297 @@
+"""Remap tables: conservative remapping matrix, hole-free fallback, balancing, normalisation.
+
+See the package docstring for the method (eqs. O, P, E). Dtype policy: construction in float64,
+stored weights float32.
+
+References
+----------
+Jones, P. 1999, "First- and second-order conservative remapping schemes for grids in spherical
+coordinates", Mon. Wea. Rev. 127 (first-order conservative remapping, eq. (O)).
+Bishop, Fienberg & Holland 1975, "Discrete Multivariate Analysis" (iterative proportional fitting).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+from scipy import ndimage
+
+from calibration.model import Calibration, FisheyeModel
+from device.sphere import CAMERA_TO_PROBE
+
+from .geometry import (
+    _Chunk,
+    _Grid,
+    _Healpix,
+    _LatLong,
+    _subpixel_chunks,
+    _theta_table,
+    fisheye_valid_mask,
+)
+
+
+# ------------------------------------------------------------------------------------------------
+# Table construction
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Table:
+    """One output map's operator (eq. P) in CSR form plus what the per-frame kernels need."""
+
+    indptr: np.ndarray  # (n+1,) int64
+    indices: np.ndarray  # (nnz,) int32 flat fisheye pixel index
+    data: np.ndarray  # (nnz,) float32 = W[j, i] g_i / A_j
+    geo_sum: np.ndarray  # (n,) float64: sum_i data / g_i (1 where covered, 0 elsewhere)
+    coverage: np.ndarray  # (n,) float32 in [0, 1]
+    solid_angle: np.ndarray  # (n,) float64 exact output pixel solid angle
+    ipf_residual: float  # max |row sum / Omega_j - 1| over interior rows after balancing
+    col_ptr: np.ndarray  # (m+1,) int64: transpose (CSC) structure, to find the rows a pixel feeds
+    col_rows: np.ndarray  # (nnz,) int32
+
+
+class _Geometry:
+    """What the table builder needs to know about the lens and the valid region."""
+
+    def __init__(self, fisheye: FisheyeModel, valid: np.ndarray) -> None:
+        self.fisheye = fisheye
+        self.valid = valid
+        self.w, self.h = fisheye.image_size
+        self.eroded = ndimage.binary_erosion(valid, border_value=0)
+        self.theta_valid = min(np.deg2rad(fisheye.fov_deg / 2), float(_theta_table(fisheye)[1][-1]))
+
+    def covered(self, d: np.ndarray, margin: bool = True) -> np.ndarray:
+        """True where the probe direction lands on a valid pixel (with ``margin``: on a valid
+        pixel whose 4 neighbours are valid too, i.e. at least one pixel inside)."""
+        dc = d @ CAMERA_TO_PROBE
+        uv = self.fisheye.project(dc)
+        iu = np.rint(uv[..., 0]).astype(np.int64)
+        iv = np.rint(uv[..., 1]).astype(np.int64)
+        inside = (iu >= 0) & (iu < self.w) & (iv >= 0) & (iv < self.h)
+        mask = self.eroded if margin else self.valid
+        ok = inside & mask[np.clip(iv, 0, self.h - 1), np.clip(iu, 0, self.w - 1)]
+        # KB4 is not monotone far behind the lens: only directions inside the fov are seen
+        return ok & (np.arctan2(np.hypot(dc[..., 0], dc[..., 1]), dc[..., 2]) <= self.theta_valid)
+
+    def gather(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear weights at directions d (n, 3) over valid pixels: (row k, pixel, weight)."""
+        uv = self.fisheye.project(d @ CAMERA_TO_PROBE)
+        u0 = np.floor(uv[:, 0]).astype(np.int64)
+        v0 = np.floor(uv[:, 1]).astype(np.int64)
+        fu, fv = uv[:, 0] - u0, uv[:, 1] - v0
+        ks, ps, ws = [], [], []
+        for du, dv, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)),
+                           (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+            iu, iv = u0 + du, v0 + dv
+            ok = (iu >= 0) & (iu < self.w) & (iv >= 0) & (iv < self.h)
+            ok[ok] &= self.valid[iv[ok], iu[ok]]
+            ok &= wt > 0
+            ks.append(np.flatnonzero(ok))
+            ps.append(iv[ok] * self.w + iu[ok])
+            ws.append(wt[ok])
+        k, p, wt = np.concatenate(ks), np.concatenate(ps), np.concatenate(ws)
+        norm = np.bincount(k, weights=wt, minlength=len(d))
+        return k, p, wt / norm[k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ipf(indptr, indices, data, row_target, interior, col_target, sweeps, tol, omega):  # pragma: no cover
+    """Over-relaxed iterative proportional fitting in place on CSR ``data``.
+
+    A factor ``r`` is applied as ``1 + omega (r - 1)`` (clamped to [0.5, 2]), the first-order
+    form of ``r ** omega``. The last column sweep is exact (omega = 1).
+    """
+    n = indptr.size - 1
+    m = col_target.size
+    cs = np.zeros(m)
+    cf = np.ones(m)
+    for sweep in range(sweeps + 1):
+        om = omega if sweep < sweeps else 1.0
+        if sweep < sweeps:
+            # Scale interior rows to their exact solid angle
+            resid = 0.0
+            for j in range(n):
+                if interior[j]:
+                    s = 0.0
+                    for k in range(indptr[j], indptr[j + 1]):
+                        s += data[k]
+                    if s > 0.0:
+                        r = row_target[j] / s
+                        resid = max(resid, abs(r - 1.0))
+                        f = min(max(1.0 + om * (r - 1.0), 0.5), 2.0)
+                        for k in range(indptr[j], indptr[j + 1]):
+                            data[k] *= f
+            if resid < tol:
+                om = 1.0
+        # Scale columns back to the energy each fisheye pixel hands out
+        cs[:] = 0.0
+        for k in range(indices.size):
+            cs[indices[k]] += data[k]
+        for c in range(m):
+            if col_target[c] > 0.0 and cs[c] > 0.0:
+                r = col_target[c] / cs[c]
+                cf[c] = r if om == 1.0 else min(max(1.0 + om * (r - 1.0), 0.5), 2.0)
+            else:
+                cf[c] = 1.0
+        for k in range(indices.size):
+            data[k] *= cf[indices[k]]
+        if om == 1.0:
+            break
+
+
+def _balance(W: sp.csr_matrix, row_target: np.ndarray, interior: np.ndarray,
+             col_target: np.ndarray, sweeps: int = 150, tol: float = 1e-5,
+             omega: float = 1.9) -> float:
+    """Balance ``W`` in place: interior rows -> ``row_target``, columns -> ``col_target``.
+
+    Iterative proportional fitting (RAS / Sinkhorn), rows not ``interior`` free. The quadrature
+    errors of eq. (O) are a few percent per output pixel and must travel across the map, so this
+    would take thousands of plain sweeps; over-relaxation (factors raised to ``omega`` = 1.9)
+    reaches ~1e-4 in ~150 (numba, a few ms each). The last sweep scales the columns exactly.
+    Returns the final max relative row residual over the interior rows.
+    """
+    data = np.ascontiguousarray(W.data, dtype=np.float64)
+    _ipf(W.indptr.astype(np.int64), W.indices.astype(np.int64), data,
+                 np.asarray(row_target, np.float64), np.asarray(interior, np.bool_),
+                 np.asarray(col_target, np.float64), sweeps, tol, omega)
+    W.data = data
+    rs = np.bincount(np.repeat(np.arange(W.shape[0]), np.diff(W.indptr)), weights=data,
+                     minlength=W.shape[0])
+    ok = interior & (rs > 0)
+    return float(np.max(np.abs(rs[ok] / row_target[ok] - 1.0), initial=0.0))
+
+
+def _chunk_entries(grid: _Grid, ch: _Chunk, m: int) -> sp.coo_matrix:
+    """Entries of eq. (O) for one chunk, a 5-point rule per subpixel (1/2 centre, 1/8 corners).
+
+    The corners make sure that thin overlaps (a sliver of a fisheye pixel inside an output
+    pixel) get an entry, so balancing can reach the exact row sums.
+    """
+    jc = grid.bin(ch.centre)
+    jk = grid.bin(ch.lattice)[ch.corners]
+    # Most subpixels lie inside one output pixel: one entry; the others get five
+    one = (jk == jc[:, None]).all(axis=1)
+    split = ~one
+    j = np.concatenate([jc, jk[split].ravel()])
+    i = np.concatenate([ch.pix, np.repeat(ch.pix[split], 4)])
+    w = np.concatenate([np.where(one, ch.omega, 0.5 * ch.omega),
+                        np.repeat(0.125 * ch.omega[split], 4)])
+    ok = j >= 0
+    W = sp.csr_matrix((w[ok], (j[ok], i[ok])), shape=(grid.size, m))
+    W.sum_duplicates()
+    return W.tocoo()
+
+
+def _build_table(grid: _Grid, geo: _Geometry, parts: list[sp.coo_matrix],
+                 gain: np.ndarray) -> _Table:
+    """Assemble eq. (O), fill holes by gather, balance (IPF) and normalise to eq. (P)."""
+    n, m = grid.size, geo.w * geo.h
+    row = np.concatenate([p.row for p in parts] or [np.zeros(0, np.int64)])
+    col = np.concatenate([p.col for p in parts] or [np.zeros(0, np.int64)])
+    wt = np.concatenate([p.data for p in parts] or [np.zeros(0)])
+    W = sp.csr_matrix((wt, (row, col)), shape=(n, m), dtype=np.float64)
+    W.sum_duplicates()
+    omega = grid.solid_angle()
+    col_target = np.bincount(W.indices, weights=W.data, minlength=m)
+
+    # Interior pixels: a 3 x 3 grid of points (edges included) all well inside the valid region
+    fr = np.linspace(0.0, 1.0, 3)
+    interior = np.asarray(geo.covered(grid.points(fr).reshape(-1, 3)).reshape(n, -1).all(axis=1))
+
+    # Hole-free fallback: pixels with no subpixel but a covered centre gather bilinearly
+    empty = np.diff(W.indptr) == 0
+    centre = grid.points(np.array([0.5]))[:, 0, :]
+    holes = np.flatnonzero(empty & geo.covered(centre, margin=False))
+    if holes.size:
+        k, p, g = geo.gather(centre[holes])
+        extra = sp.csr_matrix((g * omega[holes[k]], (holes[k], p)), shape=(n, m))
+        W = (W + extra).tocsr()
+        W.sum_duplicates()
+    W.sort_indices()
+
+    # With no free row the two marginals must have the same total
+    if not np.any(~interior & (np.diff(W.indptr) > 0)):
+        col_target *= omega[interior].sum() / col_target.sum()
+    resid = _balance(W, omega, interior, col_target)
+
+    rowsum = np.bincount(np.repeat(np.arange(n), np.diff(W.indptr)), weights=W.data, minlength=n)
+    coverage = np.where(interior, 1.0, np.clip(rowsum / omega, 0.0, 1.0))
+    coverage[rowsum <= 0] = 0.0
+    row_of = np.repeat(np.arange(n), np.diff(W.indptr))
+    norm = W.data / rowsum[row_of]  # (P): geometric weights, rows sum to 1
+    data = (norm * gain[W.indices]).astype(np.float32)
+    geo_sum = np.bincount(row_of, weights=norm, minlength=n)
+    T = W.tocsc()
+    return _Table(W.indptr.astype(np.int64), W.indices.astype(np.int32), data, geo_sum,
+                  coverage.astype(np.float32), omega, resid, T.indptr.astype(np.int64),
+                  T.indices.astype(np.int32))
+
+
+def _pixel_gain(cal: Calibration, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gain ``g_i = scale / V_i`` per fisheye pixel (flat float64) and the valid mask it leaves."""
+    fe = cal.fisheye
+    assert fe is not None
+    w, h = fe.image_size
+    scale = 1.0 if cal.photometric is None else float(cal.photometric.scale)
+    if cal.vignetting is None:
+        vig = np.ones((h, w))
+    else:
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+        vig = cal.vignetting.factor(uu, vv)
+    ok = valid & np.isfinite(vig) & (vig > 1e-6)
+    gain = np.where(ok, scale / np.where(ok, vig, 1.0), 0.0)
+    return gain.ravel(), ok
+
+
+@dataclass(frozen=True)
+class _Built:
+    """Everything a projector derives from its calibration (shared, read-only)."""
+
+    lens_mask: np.ndarray  # (h, w) bool: fisheye pixels used
+    pixel_gain: np.ndarray  # (h*w,) float64: scale / vignetting, 0 where unused
+    inv_gain: np.ndarray  # (h*w,) float64
+    pixel_solid_angle: np.ndarray  # (h, w) float64 sr, 0 where unused
+    tables: dict[str, _Table]
+
+
+# Tables built per (calibration id, geometry parameters), most recent last; a pure memo so that
+# a service restart or a second projector on the same calibration does not rebuild them.
+_TABLE_CACHE: dict[tuple[object, ...], _Built] = {}
+_TABLE_CACHE_SIZE = 4
+
+
+def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside: int,
+               ring_margin_deg: float, subdiv: int) -> _Built:
+    """Build the three tables (eq. O, gather fallback, balancing, eq. P) from one calibration."""
+    fe = cal.fisheye
+    assert fe is not None
+    w, h = fe.image_size
+    m = w * h
+    valid0 = fisheye_valid_mask(fe, ring_margin_deg)
+    lens_mask = getattr(cal, "mask", None)
+    if lens_mask is not None:  # the calibrated clean image circle, when present
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+        cx, cy = lens_mask.center
+        valid0 &= np.hypot(uu - cx, vv - cy) <= lens_mask.radius_px
+    gain, valid = _pixel_gain(cal, valid0)
+    grids: dict[str, _Grid] = {"polar": _LatLong(polar_height, 4 * polar_height, 2 * polar_height),
+                               "equirect": _LatLong(equirect_height, 2 * equirect_height,
+                                                    equirect_height),
+                               "healpix": _Healpix(nside)}
+    parts: dict[str, list[sp.coo_matrix]] = {k: [] for k in grids}
+    omega_pix = np.zeros(m)
+    for ch in _subpixel_chunks(fe, valid, subdiv):
+        omega_pix += np.bincount(ch.pix, weights=ch.omega, minlength=m)
+        for name, grid in grids.items():
+            parts[name].append(_chunk_entries(grid, ch, m))
+    geo = _Geometry(fe, valid)
+    tables = {k: _build_table(g, geo, parts[k], gain) for k, g in grids.items()}
+    inv_gain = np.where(gain > 0, 1.0 / np.where(gain > 0, gain, 1.0), 0.0)
+    arrays = [valid, gain, inv_gain, omega_pix]
+    for t in tables.values():
+        arrays += [t.indptr, t.indices, t.data, t.geo_sum, t.coverage, t.solid_angle, t.col_ptr,
+                   t.col_rows]
+    for a in arrays:
+        a.flags.writeable = False
+    return _Built(valid, gain, inv_gain, omega_pix.reshape(h, w), tables)

@@ -1,0 +1,181 @@
+"""``lightprobe relight SCENE --lights (URL|MAP.exr|MAP.hdr|LIGHTS.json) --out IMAGE``.
+
+URL forms: ``http://host:port`` (fetches ``/api/v1/lights``), or a full URL ending in
+``probe.exr`` / ``probe.hdr`` / ``lights``. ``--live`` keeps a WebSocket on ``/api/v1/stream``
+open and re-renders ``--out`` whenever a light set arrives (``--frames N`` stops after N).
+``--token`` (or the URL's ``access_token``) is sent as a bearer token.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from device.errors import InputError
+
+__all__ = ["load_lights", "main", "write_image"]
+
+
+def _lightset_from_json(doc: Any, where: str):  # type: ignore[no-untyped-def]
+    from device.sampling.base import LightSet
+
+    try:
+        return LightSet.from_json(doc)
+    except (KeyError, TypeError, ValueError, InputError) as e:
+        raise InputError(f"{where}: not a light-set JSON ({e})", param="--lights") from None
+
+
+def _fetch(url: str, token: str | None) -> tuple[bytes, str]:
+    import asyncio
+
+    import aiohttp
+
+    async def get() -> tuple[bytes, str]:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=30)) as s, \
+                s.get(url, headers=headers) as r:
+            if r.status != 200:
+                raise InputError(f"{url}: HTTP {r.status}", param="--lights")
+            return await r.read(), r.headers.get("Content-Type", "")
+
+    try:
+        return asyncio.run(get())
+    except aiohttp.ClientError as e:
+        raise InputError(f"{url}: cannot fetch ({e})", param="--lights") from None
+
+
+def _lights_url(src: str) -> str:
+    base = src.rstrip("/")
+    if base.endswith(("probe.exr", "probe.hdr", "/lights")):
+        return base
+    return base + "/api/v1/lights" if "/api/v1" not in base else base + "/lights"
+
+
+def load_lights(src: str, token: str | None = None) -> tuple[str, Any]:
+    """-> ("map", equirect float32) or ("lights", LightSet)."""
+    from device.imageio import read_hdr_image
+
+    if src.startswith(("http://", "https://")):
+        url = _lights_url(src)
+        body, ctype = _fetch(url, token)
+        if url.endswith((".exr", ".hdr")):
+            with tempfile.NamedTemporaryFile(suffix=url[-4:]) as f:
+                f.write(body)
+                f.flush()
+                return "map", read_hdr_image(f.name)
+        try:
+            return "lights", _lightset_from_json(json.loads(body), url)
+        except json.JSONDecodeError:
+            raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
+    p = Path(src)
+    if p.suffix.lower() == ".json":
+        try:
+            doc = json.loads(p.read_text())
+        except OSError as e:
+            raise InputError(f"{p}: cannot read ({e.strerror})", param="--lights") from None
+        except json.JSONDecodeError as e:
+            raise InputError(f"{p}:{e.lineno}: invalid JSON ({e.msg})", param="--lights") from None
+        return "lights", _lightset_from_json(doc, str(p))
+    if p.suffix.lower() not in (".exr", ".hdr"):
+        raise InputError(f"{p}: --lights must be a URL, .exr, .hdr or .json", param="--lights")
+    return "map", read_hdr_image(p)
+
+
+def write_image(path: Path, img: np.ndarray, mask: np.ndarray | None = None) -> None:
+    """PNG (tone-mapped, cv2) or EXR (linear, device.imageio.write_exr)."""
+    if path.suffix.lower() == ".exr":
+        from device.imageio import write_exr
+
+        write_exr(path, img.astype(np.float32), {"unit": "relative", "source": "lightprobe relight"})
+        return
+    import cv2
+
+    from hostlink.relight.render import tonemap
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), tonemap(img, mask)):
+        raise InputError(f"{path}: cannot write image", param="--out")
+
+
+def _parse_move(items: list[str]) -> list[tuple[str, np.ndarray]]:
+    out = []
+    for it in items:
+        name, _, vec = it.partition("=")
+        try:
+            v = np.array([float(x) for x in vec.split(",")])
+        except ValueError:
+            v = np.zeros(0)
+        if v.shape != (3,):
+            raise InputError(f"--move {it!r}: expected NAME=dx,dy,dz", param="--move")
+        out.append((name, v))
+    return out
+
+
+def _run(a: argparse.Namespace) -> int:
+    from hostlink.relight.precompute import precompute
+    from hostlink.relight.render import Relighter
+    from hostlink.relight.scene import load_scene
+
+    out = Path(a.out)
+    if out.suffix.lower() not in (".png", ".exr"):
+        raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
+    scene = load_scene(a.scene)
+    kind, lights = load_lights(a.lights, a.token)
+    pre = precompute(scene, tau=a.tau, spheres=a.spheres, grid=a.grid, cache_dir=a.cache,
+                     progress=not a.quiet)
+    rl = Relighter(scene, pre)
+    for name, v in _parse_move(a.move):
+        if name not in [o.name for o in scene.objects] or not scene.objects[[o.name for o in scene.objects].index(name)].movable:
+            raise InputError(f"--move: {name!r} is not a movable object of {a.scene}", param="--move")
+        rl.move(name, v)
+    bg = lights if kind == "map" else None
+    rl.set_equirect(lights) if kind == "map" else rl.set_lightset(lights)
+    t0 = time.perf_counter()
+    img, stats = rl.render(background=bg)
+    write_image(out, img, mask=None)
+    if not a.quiet:
+        print(f"relight: wrote {out} ({time.perf_counter() - t0:.3f} s, "
+              f"{int(stats['visible_vertices'])} visible vertices)", file=sys.stderr)
+    if a.live:
+        if not a.lights.startswith(("http://", "https://")):
+            raise InputError("--live needs a probe URL for --lights", param="--live")
+        from hostlink.relight.live import live_loop
+
+        return live_loop(a.lights, a.token, rl, out, a.frames, a.quiet)
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    from device.cli import run_command
+    from hostlink.relight.precompute import DEFAULT_TAU
+
+    p = argparse.ArgumentParser(prog="lightprobe relight",
+                                description="Relight a scene (JSON scene file) with a probe's lights using "
+                                            "self-visibility cuts and visibility cut fields.")
+    p.add_argument("scene", help="scene JSON file (meshes, materials, ground, camera)")
+    p.add_argument("--lights", required=True,
+                   help="probe URL (http://host:port), MAP.exr / MAP.hdr, or LIGHTS.json")
+    p.add_argument("--out", required=True, help="output image, .png (tone-mapped) or .exr (linear)")
+    p.add_argument("--tau", type=float, default=DEFAULT_TAU, help=f"SVC cut threshold (default {DEFAULT_TAU})")
+    p.add_argument("--spheres", type=int, default=32, help="VCF spheres per movable object (default 32)")
+    p.add_argument("--grid", type=int, default=32, help="VCF points per cube face side (default 32)")
+    p.add_argument("--cache", type=Path, default=None, help="precompute cache dir (default ~/.cache/lightprobe/relight)")
+    p.add_argument("--move", action="append", default=[], metavar="NAME=dx,dy,dz",
+                   help="translate a movable object before rendering (repeatable)")
+    p.add_argument("--token", default=None, help="bearer token for the probe's API")
+    p.add_argument("--live", action="store_true", help="re-render whenever the probe's lights change")
+    p.add_argument("--frames", type=int, default=0, help="with --live: stop after N updates (0 = forever)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages")
+    a = p.parse_args(argv)
+    return run_command(_run, a)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

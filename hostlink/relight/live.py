@@ -1,0 +1,59 @@
+"""Live relighting: re-render when a probe publishes a new light set on ``/api/v1/stream``."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
+
+from device.errors import InputError
+from hostlink.relight.render import Relighter
+
+__all__ = ["live_loop", "stream_url"]
+
+
+def stream_url(src: str) -> str:
+    """ws(s)://host:port/api/v1/stream for a probe URL given as http(s)://host:port[/...]."""
+    u = urlsplit(src)
+    scheme = "wss" if u.scheme == "https" else "ws"
+    return urlunsplit((scheme, u.netloc, "/api/v1/stream", "", ""))
+
+
+async def _live(src: str, token: str | None, rl: Relighter, out: Path, frames: int, quiet: bool) -> int:
+    import aiohttp
+
+    from device.sampling.base import LightSet
+    from hostlink.relight.cli import write_image
+
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    done = 0
+    async with aiohttp.ClientSession() as s, s.ws_connect(stream_url(src), headers=headers, heartbeat=30) as ws:
+        async for msg in ws:
+            if msg.type != aiohttp.WSMsgType.TEXT:
+                if msg.type in (aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR):
+                    break
+                continue
+            try:
+                ls = LightSet.from_json(json.loads(msg.data))
+            except (ValueError, KeyError, TypeError, InputError):
+                continue                                         # not a light set: ignore
+            rl.set_lightset(ls)
+            img, _ = await asyncio.to_thread(rl.render)          # numba work off the loop
+            await asyncio.to_thread(write_image, out, img)
+            done += 1
+            if not quiet:
+                print(f"relight: frame {ls.frame} -> {out}", file=sys.stderr)
+            if frames and done >= frames:
+                break
+    return 0
+
+
+def live_loop(src: str, token: str | None, rl: Relighter, out: Path, frames: int, quiet: bool) -> int:
+    import aiohttp
+
+    try:
+        return asyncio.run(_live(src, token, rl, out, frames, quiet))
+    except aiohttp.ClientError as e:
+        raise InputError(f"{src}: live stream failed ({e})", param="--lights") from None

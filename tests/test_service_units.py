@@ -1,0 +1,105 @@
+"""Small pure parts of the service: tone mapping edge cases, sd_notify, token file, TOML writer."""
+
+from __future__ import annotations
+
+import socket
+import stat
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from device.service.api import tonemap_srgb
+from device.service.auth import check_bearer, load_or_create_token, read_token
+from device.service.config import SCHEMA, ServiceConfig, dump_toml
+from device.service.notify import Notifier
+
+
+def test_tonemap_degenerate_inputs() -> None:
+    black = np.zeros((8, 16, 3), np.float32)
+    assert tonemap_srgb(black).max() == 0
+    nan = np.full((8, 16, 3), np.nan, np.float32)
+    assert tonemap_srgb(nan).max() == 0  # NaN from a sensor is treated as 0
+    hot = black.copy()
+    hot[3, 5] = 1e6
+    out = tonemap_srgb(hot)
+    assert out.dtype == np.uint8
+    assert out[3, 5].min() > 0
+    assert out.sum() == out[3, 5].sum()
+    neg = np.full((8, 16, 3), -1e-6, np.float32)  # lossy EXR negatives
+    assert tonemap_srgb(neg).max() == 0
+    ramp = np.linspace(0, 1e4, 8 * 16 * 3, dtype=np.float32).reshape(8, 16, 3)
+    t = tonemap_srgb(ramp)[..., 1].ravel()
+    assert np.all(np.diff(t.astype(int)) >= 0)  # monotone
+
+
+def test_notifier_abstract_socket_and_watchdog_interval() -> None:
+    name = f"lp-unit-{id(object())}"
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    s.bind("\0" + name)
+    s.settimeout(2)
+    try:
+        n = Notifier({"NOTIFY_SOCKET": "@" + name, "WATCHDOG_USEC": "3000000"})
+        assert n.enabled
+        assert n.watchdog_interval == pytest.approx(1.5)
+        assert n.ready("serving")
+        assert s.recv(100) == b"READY=1\nSTATUS=serving"
+        assert n.watchdog()
+        assert s.recv(100) == b"WATCHDOG=1"
+    finally:
+        s.close()
+    off = Notifier({})
+    assert not off.enabled
+    assert off.watchdog_interval is None
+    assert off.ready() is False
+    other_pid = Notifier({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "1000000", "WATCHDOG_PID": "1"})
+    assert other_pid.watchdog_interval is None  # the watchdog is meant for another process
+    gone = Notifier({"NOTIFY_SOCKET": "@no-such-socket-here"})
+    assert gone.send("STATUS=x") is False  # logged, never raised
+
+
+def test_token_file(tmp_path: Path) -> None:
+    assert read_token(tmp_path / "s") is None
+    tok = load_or_create_token(tmp_path / "s")
+    assert stat.S_IMODE((tmp_path / "s" / "token").stat().st_mode) == 0o600
+    assert load_or_create_token(tmp_path / "s") == tok == read_token(tmp_path / "s")
+    assert check_bearer(f"Bearer {tok}", tok)
+    assert not check_bearer(f"Bearer {tok}x", tok)
+    assert not check_bearer(tok, tok)
+    assert not check_bearer(None, tok)
+    assert not check_bearer("Bearer \udcff", tok)
+    assert [p.name for p in (tmp_path / "s").iterdir()] == ["token"]
+
+
+printable = st.text(st.characters(min_codepoint=32, max_codepoint=0x2FFF, exclude_characters="\x7f."), max_size=30)
+
+
+@settings(max_examples=200, deadline=None)
+@given(name=printable, fps=st.floats(0.1, 60, allow_nan=False), count=st.integers(1, 4096),
+       origins=st.lists(st.text(max_size=20), max_size=4))
+def test_toml_writer_roundtrips(name: str, fps: float, count: int, origins: list[str]) -> None:
+    cfg = ServiceConfig().with_patch({"probe": {"name": name}, "pipeline": {"fps": fps, "light_count": count},
+                                      "service": {"cors_origins": origins}})
+    back = tomllib.loads(dump_toml(cfg.data))
+    assert ServiceConfig().with_patch(back).data == cfg.data
+
+
+def test_schema_defaults_are_valid() -> None:
+    defaults = {t: {k: spec[1] for k, spec in keys.items()} for t, keys in SCHEMA.items()}
+    assert ServiceConfig().with_patch(defaults).data == ServiceConfig().data
+
+
+def test_every_api_route_is_documented() -> None:
+    import json
+
+    from service_fakes import fake_factories
+
+    from device.service.app import create_app
+
+    app = create_app(ServiceConfig(), *fake_factories(), token="t", probe_id="p")
+    doc = json.loads((Path(__file__).resolve().parent.parent / "device/service/static/openapi.json").read_text())
+    routes = {r.canonical.removeprefix("/api/v1") for r in app.router.resources() if r.canonical.startswith("/api/v1/")}
+    assert routes == set(doc["paths"]), routes ^ set(doc["paths"])
