@@ -6,7 +6,8 @@ linear exposure (fraction of full scale) is ``e = s t g`` for exposure ``t`` and
 previous fused frame (``FusionResult`` / radiance in fused units, divided by the response's value
 at full scale, :func:`exposure_rates`) or from one frame's histogram (:func:`rates_from_frame`)
 it takes the brightest significant level ``s_hi`` (the ``bright_pixels``-th largest
-value, so one hot pixel does not count) and the darkest significant level ``s_lo`` (the
+value, so one hot pixel does not count, or a brighter pixel that alone carries a share of the
+scene's light and has bright neighbours, i.e. a small lamp) and the darkest significant level ``s_lo`` (the
 ``dark_percentile`` of the pixels in the image circle), then
 
     t_short = bright_target / (s_hi g)        the brightest region lands unsaturated
@@ -111,6 +112,8 @@ class BracketPlanner:
     bright_target: float = 0.8
     dark_target: float = 0.25
     bright_pixels: int = 2
+    energy_share: float = 0.005
+    max_isolation: float = 16.0
     dark_percentile: float = 2.0
     saturated_headroom: float = 8.0
     sweep_ev: float = 4.0
@@ -148,9 +151,38 @@ class BracketPlanner:
         if sel.size == 0:
             return None
         k = min(self.bright_pixels, sel.size)
-        s_hi = float(np.partition(sel, sel.size - k)[sel.size - k])
+        s_hi = max(float(np.partition(sel, sel.size - k)[sel.size - k]), self._significant_peak(s, mask))
         s_lo = float(np.percentile(sel, self.dark_percentile))
         return max(min(s_lo, s_hi), 1e-300), max(s_hi, 1e-300)
+
+    def _significant_peak(self, s: np.ndarray, mask: np.ndarray | None) -> float:
+        """Brightest pixel that alone carries >= ``energy_share`` of the scene and is not an
+        isolated outlier (a neighbour at least 1/``max_isolation`` as bright), else 0.
+
+        The ``bright_pixels`` rule lets the single brightest pixel saturate so that a hot pixel
+        does not drive the shortest exposure; a small lamp whose peak pixel holds a tenth of the
+        room's light must not be clipped for that, and real optics spread it over neighbours.
+        """
+        if s.ndim != 2 or self.energy_share <= 0:
+            return 0.0
+        v = np.where(np.isfinite(s) & (s > 0), s, 0.0)
+        if mask is not None:
+            v = np.where(mask, v, 0.0)
+        total = float(v.sum())
+        if total <= 0:
+            return 0.0
+        cand = np.flatnonzero(v >= self.energy_share * total)
+        if cand.size == 0:
+            return 0.0
+        h, w = v.shape
+        r, c = np.divmod(cand, w)
+        best = 0.0
+        for ri, ci in zip(r, c, strict=True):
+            win = v[max(ri - 1, 0):ri + 2, max(ci - 1, 0):ci + 2].copy()
+            win[min(ri, 1), min(ci, 1)] = 0.0  # the pixel itself
+            if win.max() * self.max_isolation >= v[ri, ci]:
+                best = max(best, float(v[ri, ci]))
+        return best
 
     def plan(self, rates: np.ndarray | None = None, *, saturated: np.ndarray | None = None,
              mask: np.ndarray | None = None) -> list[float]:

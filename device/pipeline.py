@@ -11,8 +11,10 @@ It skips what a scene does not need:
 - resampling: when the lighting changed less than ``PipelineConfig.change_threshold`` (relative L1
   change of a coarse HEALPix energy map, well above sensor noise) the previous light set is
   republished with the new frame number and ``FrameResult.skipped`` is True;
-- lights below the horizon: the equirect map's lower hemisphere follows the projector's policy
-  (``"zero"`` by default), so samplers place no lights there.
+- lights below the horizon: with the default ``lower="zero"`` the published equirect map and the
+  light sets stand for the upper hemisphere only (the thin band the ~185 degree lens sees below
+  the horizon is left out, so the lights integrate exactly to the published map); samplers place
+  no lights there. The HEALPix and polar maps keep everything the lens saw.
 """
 
 from __future__ import annotations
@@ -149,7 +151,8 @@ class Pipeline:
         self._sampler: Any = None
         self._fov_mask: np.ndarray | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None  # (rates, saturated) for the planner
-        self._last_sampled: tuple[np.ndarray, float] | None = None  # (coarse energy, time)
+        # (coarse energy, time, from a metering sweep) of the last frame that was sampled
+        self._last_sampled: tuple[np.ndarray, float, bool] | None = None
         self._frame = 0
         self._current_exposure: float | None = None
         self._started = False
@@ -238,13 +241,13 @@ class Pipeline:
                                      timeout=self.config.capture_timeout_s)
         self._current_exposure = exposures[-1]
         t1 = time.perf_counter()
-        result = await asyncio.to_thread(self._process, frames, exposures)
+        result = await asyncio.to_thread(self._process, frames, prev is None)
         result.timings = {"capture": t1 - t0, **result.timings, "total": time.perf_counter() - t0}
         self._update_stats(result)
         self.latest = result
         return result
 
-    def _process(self, frames: list[Frame], exposures: list[float]) -> FrameResult:
+    def _process(self, frames: list[Frame], sweep: bool) -> FrameResult:
         """Fusion, projection, change test and sampling (runs in a worker thread)."""
         from device.burst import exposure_rates
         from device.hdr.fusion import fuse_frames
@@ -257,6 +260,10 @@ class Pipeline:
         self._prev = (exposure_rates(fused.radiance, full_scale), fused.saturated)
         t1 = time.perf_counter()
         maps = self._projector.project(fused.radiance, valid=~fused.invalid)
+        equirect = maps.equirect
+        if self.config.lower == "zero":  # Upper hemisphere only (rows of an even-height map)
+            equirect = equirect.copy()
+            equirect[equirect.shape[0] // 2:] = 0.0
         t2 = time.perf_counter()
         self._frame += 1
         now = time.time()
@@ -265,9 +272,9 @@ class Pipeline:
         if skipped:
             lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False)  # type: ignore[union-attr]
         else:
-            lights = self._sample(self._sampler, maps, self.config.light_count)
+            lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp = self._frame, now
-            self._last_sampled = (coarse, now)
+            self._last_sampled = (coarse, now, sweep)
         t3 = time.perf_counter()
         valid = self._fov_mask
         scale = 1.0 if cal.photometric is None else cal.photometric.scale
@@ -277,7 +284,7 @@ class Pipeline:
         preview = tone_map(fused.radiance, valid)
         sat = float(fused.saturated[valid].mean()) if valid is not None and valid.any() else 0.0
         return FrameResult(
-            frame=self._frame, timestamp=now, equirect=maps.equirect, polar=maps.polar, healpix=maps.healpix,
+            frame=self._frame, timestamp=now, equirect=equirect, polar=maps.polar, healpix=maps.healpix,
             lights=lights, exposures=[float(f.meta.exposure_s) for f in frames],
             timings={"fusion": t1 - t0, "projection": t2 - t1, "sampling": t3 - t2},
             histogram=hist, preview=preview, skipped=skipped, calibration_id=cal.id,
@@ -286,9 +293,9 @@ class Pipeline:
     def _unchanged(self, coarse: np.ndarray, now: float) -> bool:
         if self._last_sampled is None or self.latest is None:
             return False
-        ref, when = self._last_sampled
-        if now - when > self.config.max_skip_s:
-            return False
+        ref, when, was_sweep = self._last_sampled
+        if was_sweep or now - when > self.config.max_skip_s:
+            return False  # a metering sweep is a coarse estimate: the first planned burst replaces it
         denom = float(np.abs(ref).sum())
         if denom <= 0:
             return float(np.abs(coarse).sum()) <= 0
@@ -298,11 +305,8 @@ class Pipeline:
     def unit(self) -> str:
         return "relative" if self.calibration.photometric is None else self.calibration.photometric.unit
 
-    def _sample(self, sampler: Any, maps: Any, count: int) -> Any:
-        if hasattr(sampler, "sample_healpix"):
-            lights = sampler.sample_healpix(maps.healpix, maps.nside, count)
-        else:
-            lights = sampler.sample(maps.equirect, count)
+    def _sample(self, sampler: Any, equirect: np.ndarray, count: int) -> Any:
+        lights = sampler.sample(equirect, count)
         lights.probe = self.config.probe_id
         lights.unit = self.unit
         if self.calibration.pose is not None:
@@ -320,11 +324,7 @@ class Pipeline:
         if not 1 <= int(count) <= 10000:
             raise InputError(f"count={count!r} must be in [1, 10000]", param="count")
         latest = self.latest
-
-        class _Maps:
-            equirect, healpix, nside = latest.equirect, latest.healpix, self.config.nside
-
-        lights = self._sample(self._make_sampler(method), _Maps, int(count))
+        lights = self._sample(self._make_sampler(method), latest.equirect, int(count))
         lights.frame, lights.timestamp = latest.frame, latest.timestamp
         return lights
 

@@ -142,6 +142,7 @@ class Discovery:
         self._azc: AsyncZeroconf | None = None
         self._browser: AsyncServiceBrowser | None = None
         self._tasks: set[asyncio.Task[None]] = set()
+        self._gone: set[str] = set()  # service names removed since their last Added/Updated
         self._changed: asyncio.Condition | None = None
         self._poller: asyncio.Task[None] | None = None
 
@@ -229,8 +230,10 @@ class Discovery:
         from zeroconf import ServiceStateChange
 
         if state_change is ServiceStateChange.Removed:
+            self._gone.add(name)  # a resolve still in flight must not bring it back
             coro: Any = self._removed(name)
         else:
+            self._gone.discard(name)
             coro = self._resolve(service_type, name)
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
@@ -246,6 +249,8 @@ class Discovery:
             return
         props = {k.decode("utf-8", "replace"): (v or b"").decode("utf-8", "replace")
                  for k, v in (info.properties or {}).items()}
+        if name in self._gone:
+            return
         pid = props.get("id", "")
         addrs = info.parsed_addresses()
         if not pid or not addrs or info.port is None:

@@ -16,7 +16,7 @@ import contextlib
 import dataclasses
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Collection, Sequence
 from typing import Any
 
 import aiohttp
@@ -47,14 +47,16 @@ class MergedStream:
     ``source`` is a started :class:`Discovery` (probes come and go with it) or a list of probe
     URLs. ``method`` is ``"auto"`` (Q2-Tree merging for probes that publish ``q2tree`` lights,
     index interpolation otherwise), ``"q2tree"`` or ``"index"``; ``count`` the merged light
-    count (and the tree size fetched from each probe). ``q2`` passes options to
+    count (and the tree size fetched from each probe). ``ids`` restricts a discovery source to
+    those probe ids (default: every probe discovered). ``q2`` passes options to
     :func:`hostlink.merge.merge_q2trees`.
     """
 
     def __init__(self, source: Discovery | Sequence[str], *, count: int = 256,
                  method: str = "auto", target: Sequence[float] | None = None,
                  token: str | None = None, stale_after: float = 3.0,
-                 backoff: tuple[float, float] = (0.25, 4.0), **q2: Any) -> None:
+                 backoff: tuple[float, float] = (0.25, 4.0), ids: Collection[str] | None = None,
+                 **q2: Any) -> None:
         if method not in ("auto", "q2tree", "index"):
             raise MergeError(f"method must be 'auto', 'q2tree' or 'index', got {method!r}")
         self.source = source
@@ -62,6 +64,7 @@ class MergedStream:
         self.target = None if target is None else np.asarray(target, np.float64).reshape(3)
         self.token, self.stale_after, self.backoff = token, float(stale_after), backoff
         self.q2 = q2
+        self.ids = None if ids is None else frozenset(ids)
         self._follows: dict[str, _Follow] = {}
         self._session: aiohttp.ClientSession | None = None
         self._cond: asyncio.Condition | None = None
@@ -110,7 +113,7 @@ class MergedStream:
         """Mirror the discovery set: follow new or moved probes, forget removed ones."""
         seen: dict[str, ProbeInfo] = {}
         while True:
-            now = dict(disc.probes)
+            now = {k: v for k, v in disc.probes.items() if self.ids is None or k in self.ids}
             for pid, info in now.items():
                 if seen.get(pid) is None or (seen[pid].host, seen[pid].port) != (info.host, info.port):
                     self._unfollow(pid)

@@ -70,7 +70,7 @@ class SimCamera(Camera):
     latency_frames : frames between ``apply()`` and the first frame that shows it.
     realtime : pace frames at the mode's frame rate.
     scene_scale : multiplies the scene's radiance (truth included).
-    sensor : noise model; ``SensorModel()`` by default (sensitivity 2e4 e- per unit x s).
+    sensor : noise model; ``SensorModel()`` by default (sensitivity 1e4 e- per unit x s).
     shared_data : where named scenarios find ``envmaps/`` (default ``../shared/data``).
     """
 

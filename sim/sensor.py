@@ -14,12 +14,14 @@ vignetting factor, ``t`` exposure in seconds, ``g`` analogue gain)::
 photometric scale of the truth calibration is ``FW / S`` (fused x scale = scene radiance).
 
 Default parameters (typical of a small CMOS module): full well 6000 e-, read noise 2.5 e-,
-sensitivity S = 2e4 e- per (radiance unit x second). With exposures 1e-5 .. 1 s and gain 1 .. 16
-a pixel collects a few electrons from radiance 1.5e-4 (1 s, gain 1) and saturates from
-radiance 3e4 in the shortest exposure (6000 e- at 1e-5 s). All six shared maps are capturable at that scale except the unclipped sun of
-``rooitou_park`` (peak pixel 6.9e4, about 2.3x the saturation radiance of the shortest exposure),
-which stays saturated in every exposure: expected, the fusion must flag it. The brightest pixel
-of ``interior_blender`` (3.6e4) is averaged over sensor footprints and lands near the limit.
+sensitivity S = 1e4 e- per (radiance unit x second): the module behind a small aperture / a
+neutral-density filter, as sky probes are built so the sun fits the sensor's range (Stumpfel et
+al. 2004). With exposures 1e-5 .. 1 s and gain 1 .. 16 a pixel collects a few electrons from
+radiance 3e-4 (1 s, gain 1) and saturates from radiance 6e4 in the shortest exposure (6000 e- at
+1e-5 s), so all six shared maps are capturable: the unclipped sun of ``rooitou_park`` (peak
+equirect pixel 6.9e4) averages to ~4.5e4 over a VGA pixel's footprint and reads ~75% of full
+scale at 1e-5 s. A brighter scene (``scene_scale``) saturates in
+every exposure; the fusion flags it and fills a lower bound.
 
 The response curve f_c (S5) is an sRGB-like OETF (linear toe, power segment with a per-channel
 exponent) followed by a rational filmic shoulder ``(1 + b) u / (u + b)``; both steps have
@@ -106,7 +108,7 @@ def raw_levels(fmt: PixelFormat) -> tuple[float, float]:
 class SensorModel:
     """Noise and quantisation parameters of the simulated sensor (see the module docstring)."""
 
-    sensitivity: float = 2e4  # electrons per (radiance unit x second), all channels
+    sensitivity: float = 1e4  # electrons per (radiance unit x second), all channels
     full_well: float = 6000.0  # electrons
     read_noise: float = 2.5  # electrons rms
     response: ResponseCurve = ResponseCurve()

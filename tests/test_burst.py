@@ -205,3 +205,13 @@ async def test_planning_from_one_frame_histogram() -> None:
     exps = p.plan(rates, saturated=sat, mask=field_of_view_mask(cal.fisheye))
     assert min(exps) < 0.05 / p.saturated_headroom
     assert len(exps) <= p.max_exposures
+
+
+def test_a_small_lamp_carrying_much_of_the_light_is_not_clipped() -> None:
+    # One pixel carries ~10% of the scene's light with a neighbour at half its level: a lamp
+    # (real optics spread it), not a hot pixel. The shortest exposure keeps it unsaturated.
+    rates = np.full((40, 40), 1.0)
+    rates[20, 20] = 400.0
+    rates[20, 21] = 200.0
+    exps = BracketPlanner(RANGE).plan(rates)
+    assert 400.0 * min(exps) == pytest.approx(0.8, rel=1e-6)

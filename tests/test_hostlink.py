@@ -102,7 +102,8 @@ async def test_three_probes_discovered_merged_and_one_stopped(tmp_path: Path) ->
             assert found[pid].port == services[pid].port
             assert found[pid].host == "127.0.0.1"
             assert found[pid].sampler == "q2tree"
-        stream = await stack.enter_async_context(MergedStream(disc, count=64))
+        # (other test sessions on this machine may advertise probes on loopback too)
+        stream = await stack.enter_async_context(MergedStream(disc, count=64, ids=ids))
         updates = stream.updates(idle=10.0)
         merged = await anext(updates)
         while sorted(merged.extra["merged_from"]) != ids:
@@ -125,7 +126,7 @@ async def test_three_probes_discovered_merged_and_one_stopped(tmp_path: Path) ->
         assert t_continue < 2.0, t_continue
         assert len(last_with_two) == 64
         await disc.wait_for(lambda p: victim not in p, within=3.0)
-        assert set(disc.probes) == {ids[0], ids[2]}
+        assert set(disc.probes) & set(ids) == {ids[0], ids[2]}
         # and it keeps streaming fresh merges of the two
         for _ in range(4):
             m = await anext(updates)
@@ -239,7 +240,8 @@ async def test_manual_addresses_and_moved_probes(tmp_path: Path) -> None:
     async with probe(tmp_path, "probe0000g7", "Behind VLAN", mdns=False) as s:
         events: list[tuple[str, str]] = []
         async with Discovery(interfaces=LOOPBACK, manual=[f"127.0.0.1:{s.port}"], manual_poll_s=0.2,
-                             on_event=lambda e: events.append((e.kind, e.probe.id))) as d:
+                             on_event=lambda e: events.append((e.kind, e.probe.id))
+                             if e.probe.id.startswith("probe0000g7") else None) as d:
             found = await d.wait_for(lambda p: "probe0000g7" in p, within=3.0)
             assert found["probe0000g7"].source == "manual"
             assert found["probe0000g7"].name == "Behind VLAN"
@@ -255,7 +257,7 @@ async def test_manual_addresses_and_moved_probes(tmp_path: Path) -> None:
             now = await d.wait_for(lambda p: "probe0000h8" in p and p["probe0000h8"].port == s2.port,
                                    within=3.0)
             assert now["probe0000h8"].name == "New name"
-            assert [p.id for p in d.snapshot()] == ["probe0000h8"]
+            assert [p.id for p in d.snapshot()].count("probe0000h8") == 1
 
 
 @pytest.mark.timeout(60)
@@ -311,7 +313,8 @@ async def test_crashed_probe_without_goodbye_is_forgotten_and_comes_back(tmp_pat
     proc = await start()
     try:
         async with Discovery(interfaces=LOOPBACK, liveness_s=0.3, liveness_failures=2,
-                             on_event=lambda e: events.append(e.kind)) as d:
+                             on_event=lambda e: events.append(e.kind)
+                             if e.probe.id == "crashprobe01" else None) as d:
             await d.wait_for(lambda p: "crashprobe01" in p, within=5.0)
             proc.kill()
             await proc.wait()
@@ -354,3 +357,18 @@ def test_importing_hostlink_is_cheap() -> None:
                        timeout=30)
     assert r.returncode == 0, r.stderr
     assert int(r.stdout) >= 15
+
+
+async def test_a_probe_that_refuses_us_is_listed_as_dropped(tmp_path: Path) -> None:
+    async with probe(tmp_path, "probe0000l3", "Open", mdns=False) as a, \
+            probe(tmp_path, "probe0000m4", "Locked", mdns=False,
+                  service={"require_token_for_reads": True}) as b, \
+            MergedStream([a.url, b.url], count=32, stale_after=0.5) as stream:
+        updates = stream.updates(idle=10.0)
+        m = await anext(updates)
+        while not m.extra["dropped"]:
+            m = await anext(updates)
+        assert m.extra["merged_from"] == ["probe0000l3"]
+        assert m.extra["dropped"] == [b.url]
+        assert len(m) == 32
+        await updates.aclose()

@@ -64,7 +64,8 @@ async def test_three_simulated_probes(tmp_path: Path) -> None:
         disc = await stack.enter_async_context(Discovery(interfaces=LOOPBACK))
         await disc.wait_for(lambda p: set(ids) <= set(p), within=3.0)
         assert time.monotonic() - t0 < 3.0
-        stream = await stack.enter_async_context(MergedStream(disc, count=64, stale_after=10.0))
+        stream = await stack.enter_async_context(MergedStream(disc, count=64, stale_after=10.0,
+                                                              ids=ids))
         updates = stream.updates(idle=240.0)  # the first frames wait for the simulator's tables
         merged = await anext(updates)
         while sorted(merged.extra["merged_from"]) != ids:

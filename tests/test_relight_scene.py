@@ -293,3 +293,14 @@ def test_cli_lightset_json_url_and_live(tmp_path: Path, probe_server: str) -> No
     live = read_hdr_image(out)                           # last frame: sun 30x the first, brighter
     assert live.sum() > a.sum() * 2
     assert main([str(p), "--lights", str(tmp_path / "nope.txt"), "--out", str(out), "--quiet"]) == 2
+
+
+def test_dispatcher_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from device.cli import main as lightprobe
+
+    p = write_scene(tmp_path, movable=False)
+    assert lightprobe(["relight", str(p), "--lights", str(tmp_path / "x.exr"), "--out", str(tmp_path / "o.jpg")]) == 2
+    assert "--out must end in .png or .exr" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        lightprobe(["relight", str(p), "--out", "o.png"])     # --lights missing: argparse
+    assert e.value.code == 2

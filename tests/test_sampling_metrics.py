@@ -51,9 +51,9 @@ def test_uniform_map_irradiance_is_pi_and_ambient_is_counted() -> None:
     np.testing.assert_allclose(ref.truth("diffuse"), np.pi, rtol=1e-3)
     # Phong lobe normalised to integrate to 1 over the hemisphere of r: L = 1 -> 1
     np.testing.assert_allclose(ref.truth("glossy"), 1.0, rtol=1e-2)
-    # A 35 deg cap blocks at most 1 - cos^2(35 deg) of pi; axes are in the upper hemisphere
+    # A 35 deg cap blocks at most 1 - cos^2(35 deg) of pi (axes uniform: some caps block nothing)
     occ = ref.truth("occluded") / np.pi
-    assert np.all(occ <= 1.0)
+    assert np.all(occ <= 1.0 + 1e-3)  # the map's own discretisation of pi, as above
     assert np.all(occ >= 1 - np.sin(np.radians(35)) ** 2 - 1e-3)
     assert np.mean(occ) < 0.95  # the caps do shadow
     ambient = LightSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),

@@ -1,11 +1,9 @@
 """Q2-Tree quality on the six shared maps at N = 256 (exact, map-based errors).
 
 Measured on this box (medians over the six maps, N = 256, default Q2TreeSampler: integral
-importance, centroid placement, nside 256): diffuse 0.00085, occluded 0.0085, glossy 0.0245.
-Mean importance: occluded 0.057; jitter placement: occluded 0.0132; the registry's median cut:
-occluded 0.0092, diffuse 0.0014. The issue's occluded target (0.006) is NOT met: at N = 256
-both Q2-Tree and median cut sit near 0.009 with these metrics (the error falls like N^-0.8 and
-reaches 0.006 near N = 512); the bounds below assert what is measured.
+importance, centroid placement, nside 256): diffuse 0.00085, occluded 0.0052 (issue: <= 0.002
+and <= 0.006). The registry's median cut: diffuse 0.00137, occluded 0.0057 (the issue quotes
+about 0.0016 / 0.0057 for a plain median cut, which checks the metric's definition).
 """
 
 from __future__ import annotations
@@ -49,8 +47,8 @@ def _median(errors: dict[str, dict[str, list[float]]], variant: str, kind: str) 
 
 def test_q2tree_median_errors_at_256(errors: dict[str, dict[str, list[float]]]) -> None:
     assert len(errors["q2tree"]["diffuse"]) == 6
-    assert _median(errors, "q2tree", "diffuse") <= 0.0012  # measured 0.00085; issue asks 0.002
-    assert _median(errors, "q2tree", "occluded") <= 0.0090  # measured 0.0085; issue asks 0.006
+    assert _median(errors, "q2tree", "diffuse") <= 0.002  # measured 0.00085
+    assert _median(errors, "q2tree", "occluded") <= 0.006  # measured 0.0052
 
 
 def test_integral_importance_and_centroid_placement_are_the_better_defaults(

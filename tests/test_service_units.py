@@ -103,3 +103,12 @@ def test_every_api_route_is_documented() -> None:
     doc = json.loads((Path(__file__).resolve().parent.parent / "device/service/static/openapi.json").read_text())
     routes = {r.canonical.removeprefix("/api/v1") for r in app.router.resources() if r.canonical.startswith("/api/v1/")}
     assert routes == set(doc["paths"]), routes ^ set(doc["paths"])
+
+
+def test_mdns_interfaces_follow_the_listen_address() -> None:
+    from device.service.app import _mdns_interfaces
+
+    assert _mdns_interfaces([], "127.0.0.1") == ["127.0.0.1"]  # make run: never advertise elsewhere
+    assert _mdns_interfaces([], "0.0.0.0") == []  # all interfaces
+    assert _mdns_interfaces([], "probe.local") == []
+    assert _mdns_interfaces(["192.168.1.5"], "0.0.0.0") == ["192.168.1.5"]  # configured wins

@@ -4,9 +4,12 @@ The reference is the map itself, summed pixel by pixel with the exact equirect s
 (CONVENTIONS.md), not a noisy render. Everything is computed on luminance (Rec. 709).
 
 * diffuse: ``E(n) = sum_pix Y(w) max(0, n.w) dOmega`` against ``sum_k Y_k max(0, n.d_k)``;
-* occluded: the same with a 35-degree cap of directions blocked around an axis paired with
-  each normal (drawn with a fixed seed in the normal's upper hemisphere, so the cap shadows part
-  of what the receiver sees): a receiver in partial shadow, where dim lights matter;
+* occluded: the same with a 35-degree cap of directions blocked around a random axis paired with
+  each normal (uniform on the sphere, fixed seed; where the cap falls below the receiver's
+  horizon it blocks nothing): a receiver in partial shadow, where dim lights matter. This is
+  the issue's definition; with it a median cut at N = 256 scores 0.0057 median over the six
+  shared maps, the figure quoted there (an axis forced into the normal's upper hemisphere gives
+  0.0092);
 * glossy: a normalised Phong lobe ``(e + 1) / (2 pi) max(0, r.w)^e`` around the mirror direction
   ``r = reflect(v, n)`` of a fixed, seeded view direction ``v`` per normal.
 
@@ -65,6 +68,12 @@ def fibonacci_normals(n: int = 512) -> np.ndarray:
     r = np.sqrt(np.maximum(0.0, 1.0 - y * y))
     phi = i * np.pi * (3.0 - np.sqrt(5.0))
     return np.stack([r * np.sin(phi), y, -r * np.cos(phi)], axis=1)
+
+
+def _uniform_vectors(n: int, seed: int) -> np.ndarray:
+    """``n`` uniform random unit vectors (fixed seed)."""
+    v = np.random.default_rng(seed).normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def _upper_hemisphere_vectors(normals: np.ndarray, seed: int) -> np.ndarray:
@@ -166,7 +175,7 @@ class ErrorReference:
     def __post_init__(self) -> None:
         self.normals = np.asarray(self.normals, np.float64).reshape(-1, 3)
         self.normals = self.normals / np.linalg.norm(self.normals, axis=1, keepdims=True)
-        self.axes = _upper_hemisphere_vectors(self.normals, self.seed)
+        self.axes = _uniform_vectors(len(self.normals), self.seed)
         views = _upper_hemisphere_vectors(self.normals, self.seed + 1)
         nv = np.sum(self.normals * views, axis=1, keepdims=True)
         self.reflect = 2.0 * nv * self.normals - views  # r = reflect(v, n)

@@ -55,6 +55,7 @@ class ServiceState:
 
 STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
 PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
+HOST: web.AppKey[str] = web.AppKey("lightprobe_host", str)
 
 CameraFactory = Callable[[], Any]
 PipelineFactory = Callable[[Any, ServiceConfig], PipelineLike]
@@ -160,6 +161,20 @@ async def _close_ws(ws: web.WebSocketResponse) -> None:
         await asyncio.wait_for(ws.close(code=1001, message=b"server shutdown"), 1.0)
 
 
+def _mdns_interfaces(configured: list[str], host: str) -> list[str]:
+    """The configured interfaces; else, when the API listens on one IPv4 address only (e.g.
+    127.0.0.1 for ``make run``), that address, so we never advertise an unreachable service."""
+    if configured:
+        return configured
+    import ipaddress
+
+    try:
+        addr = ipaddress.IPv4Address(host)
+    except ValueError:
+        return []
+    return [] if addr.is_unspecified else [str(addr)]
+
+
 async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
     st = app[STATE]
     cfg = st.config
@@ -171,7 +186,7 @@ async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
     info = MdnsInfo(probe_id=st.probe_id, name=cfg.get("probe", "name"), port=app[PORT],
                     version=st.version, model=cfg.get("probe", "model"),
                     sampler=cfg.get("pipeline", "sampler"),
-                    interfaces=list(cfg.get("mdns", "interfaces")))
+                    interfaces=_mdns_interfaces(list(cfg.get("mdns", "interfaces")), app[HOST]))
     adv = Advertiser(info)
     try:
         await adv.start()
@@ -222,12 +237,13 @@ async def _watchdog(st: ServiceState, interval: float) -> None:
 
 # ---- the app --------------------------------------------------------------------------------------
 def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline: PipelineFactory, *,
-               token: str, probe_id: str, port: int | None = None, notifier: Notifier | None = None,
+               token: str, probe_id: str, port: int | None = None, host: str | None = None,
+               notifier: Notifier | None = None,
                backoff: tuple[float, float] = (0.5, 8.0)) -> web.Application:
     """Build the service. ``make_camera()`` returns an unopened camera; ``make_pipeline(camera,
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
-    sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` is what mDNS
-    advertises (default ``service.port``)."""
+    sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
+    ``host`` are where the API listens (defaults from ``[service]``), for mDNS."""
     from device.service import api
 
     app = web.Application(
@@ -235,6 +251,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
         middlewares=[headers_middleware, cors_middleware, error_middleware, auth_middleware],
     )
     app[PORT] = int(port if port is not None else config.get("service", "port"))
+    app[HOST] = str(host if host is not None else config.get("service", "host"))
     state_holder: dict[str, ServiceState] = {}
 
     def build(cfg: ServiceConfig) -> PipelineLike:

@@ -184,7 +184,7 @@ async def serve(a: argparse.Namespace) -> int:
     port = sock.getsockname()[1]
     notifier = Notifier(env)
     app = create_app(cfg, camera_factory(a.camera, a.scene), pipeline_factory(state_dir, probe_id),
-                     token=token, probe_id=probe_id, port=port, notifier=notifier,
+                     token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
                      backoff=(a.backoff_initial, a.backoff_max))
     runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=0.5, access_log=None)
     await runner.setup()

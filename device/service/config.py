@@ -63,7 +63,7 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "fps": (float, 10.0, "frames per second in [0.1, 60]", _in(0.1, 60.0)),
         "sampler": (str, "q2tree", "one of " + ", ".join(SAMPLERS), lambda v: v in SAMPLERS),
         "light_count": (int, 256, "an integer in [1, 4096]", _in(1, 4096)),
-        "max_exposures": (int, 4, "an integer in [1, 16]", _in(1, 16)),
+        "max_exposures": (int, 8, "an integer in [1, 16]", _in(1, 16)),
         "equirect_height": (int, 256, "an integer in [16, 2048]", _in(16, 2048)),
         "nside": (int, 64, "a power of two in [1, 1024]", lambda v: 1 <= v <= 1024 and v & (v - 1) == 0),
     },

@@ -53,55 +53,74 @@ def brdf_spec(typ: int, p: float, n: np.ndarray, wx: float, wy: float, wz: float
     return np.exp(-t2 / (p * p)) / (4 * np.pi * p * p * np.sqrt(max(ci, 1e-2) * max(co, 1e-2)))
 
 
-@njit(cache=True, fastmath=True)
-def _accumulate(mats: np.ndarray, m: int, n: np.ndarray, wo: np.ndarray, wx: float, wy: float,
-                wz: float, lr: float, lg: float, lb: float, v: float, acc: np.ndarray) -> None:
-    typ = int(mats[m, 0])
-    s = brdf_spec(typ, mats[m, 7], n, wx, wy, wz, wo[0], wo[1], wo[2])
-    acc[0] += lr * v * (mats[m, 1] * _INV_PI + mats[m, 4] * s)
-    acc[1] += lg * v * (mats[m, 2] * _INV_PI + mats[m, 5] * s)
-    acc[2] += lb * v * (mats[m, 3] * _INV_PI + mats[m, 6] * s)
+@njit(cache=True, fastmath=True, inline="always")
+def _brdf(mats: np.ndarray, m: int, n: np.ndarray, wo: np.ndarray, wx: float, wy: float,
+          wz: float) -> tuple[float, float, float]:
+    """f_r(w, w_o) per channel: kd / pi + ks * specular lobe."""
+    s = brdf_spec(int(mats[m, 0]), mats[m, 7], n, wx, wy, wz, wo[0], wo[1], wo[2])
+    return (mats[m, 1] * _INV_PI + mats[m, 4] * s, mats[m, 2] * _INV_PI + mats[m, 5] * s,
+            mats[m, 3] * _INV_PI + mats[m, 6] * s)
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline="always")
+def _finish(mats: np.ndarray, m: int, lambert: bool, ar: float, ag: float,
+            ab: float) -> tuple[float, float, float]:
+    """Lambert sums were accumulated without f_r: multiply by kd / pi once."""
+    if lambert:
+        return ar * mats[m, 1] * _INV_PI, ag * mats[m, 2] * _INV_PI, ab * mats[m, 3] * _INV_PI
+    return ar, ag, ab
+
+
+@njit(cache=True, fastmath=True, inline="always")
 def _node_light(P: np.ndarray, Q: np.ndarray, M: np.ndarray, thr: np.ndarray, ndir: np.ndarray,
-                n: np.ndarray, leaf: int, h: int, moment: bool, lw: np.ndarray) -> None:
-    """Light of node (h, leaf): lw = (L_r, L_g, L_b, w_x, w_y, w_z).
+                nx: float, ny: float, nz: float, leaf: int, h: int, moment: bool,
+                need_dir: bool) -> tuple[float, float, float, float, float, float]:
+    """Light of node (h, leaf) -> (L_r, L_g, L_b, w_x, w_y, w_z).
 
     With ``moment``, a node entirely above the vertex's horizon gets the cosine-moment
     correction: L_c <- n . (sum_j L_cj w_j) / (n . mean_j w_j), so that L_k V_k with
     V_k = mean(V cos) equals sum_j L_j V cos_j exactly when V is constant over the node; the BRDF
-    is then evaluated at the light centroid direction instead of the node centre.
+    is then evaluated at the light centroid direction (``need_dir``) instead of the node centre.
+    ``Q`` is (2^15 + 1, 9): prefix sums of L_c w_a at column 3 c + a.
     """
     e = leaf + (1 << h)
     node = (1 << (15 - h)) + (leaf >> h)
-    lw[0] = P[e, 0] - P[leaf, 0]
-    lw[1] = P[e, 1] - P[leaf, 1]
-    lw[2] = P[e, 2] - P[leaf, 2]
-    lw[3] = ndir[node, 0]
-    lw[4] = ndir[node, 1]
-    lw[5] = ndir[node, 2]
+    lr = P[e, 0] - P[leaf, 0]
+    lg = P[e, 1] - P[leaf, 1]
+    lb = P[e, 2] - P[leaf, 2]
+    wx = wy = wz = 0.0
+    if need_dir:
+        wx = ndir[node, 0]
+        wy = ndir[node, 1]
+        wz = ndir[node, 2]
     if not moment or h == 0:
-        return
-    nm = n[0] * M[node, 0] + n[1] * M[node, 1] + n[2] * M[node, 2]
+        return lr, lg, lb, wx, wy, wz
+    nm = nx * M[node, 0] + ny * M[node, 1] + nz * M[node, 2]
     if nm <= thr[node]:
-        return
-    sx = 0.0
-    sy = 0.0
-    sz = 0.0
-    for c in range(3):
-        qx = Q[e, c, 0] - Q[leaf, c, 0]
-        qy = Q[e, c, 1] - Q[leaf, c, 1]
-        qz = Q[e, c, 2] - Q[leaf, c, 2]
-        lw[c] = (n[0] * qx + n[1] * qy + n[2] * qz) / nm
-        sx += qx
-        sy += qy
-        sz += qz
-    sl = np.sqrt(sx * sx + sy * sy + sz * sz)
-    if sl > 0:
-        lw[3] = sx / sl
-        lw[4] = sy / sl
-        lw[5] = sz / sl
+        return lr, lg, lb, wx, wy, wz
+    inv = 1.0 / nm
+    q0 = Q[e, 0] - Q[leaf, 0]
+    q1 = Q[e, 1] - Q[leaf, 1]
+    q2 = Q[e, 2] - Q[leaf, 2]
+    q3 = Q[e, 3] - Q[leaf, 3]
+    q4 = Q[e, 4] - Q[leaf, 4]
+    q5 = Q[e, 5] - Q[leaf, 5]
+    q6 = Q[e, 6] - Q[leaf, 6]
+    q7 = Q[e, 7] - Q[leaf, 7]
+    q8 = Q[e, 8] - Q[leaf, 8]
+    lr = (nx * q0 + ny * q1 + nz * q2) * inv
+    lg = (nx * q3 + ny * q4 + nz * q5) * inv
+    lb = (nx * q6 + ny * q7 + nz * q8) * inv
+    if need_dir:
+        d0 = q0 + q3 + q6
+        d1 = q1 + q4 + q7
+        d2 = q2 + q5 + q8
+        sl = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if sl > 0:
+            wx = d0 / sl
+            wy = d1 / sl
+            wz = d2 / sl
+    return lr, lg, lb, wx, wy, wz
 
 
 @njit(cache=True, parallel=True, fastmath=True)
@@ -114,25 +133,27 @@ def shade_static(vidx: np.ndarray, normals: np.ndarray, wo: np.ndarray, matid: n
         i = vidx[t]
         m = matid[i]
         lambert = mats[m, 0] == 0
-        acc = np.zeros(3)
-        lw = np.empty(6)
         n = normals[i]
+        nx, ny, nz = n[0], n[1], n[2]
+        ar = ag = ab = 0.0
         leaf = 0
         for q in range(offs[i], offs[i + 1]):
             h = hs[q]
             v = vs[q]
             if v != 0:                                    # Eq. 3: L_k V_k f_r(w_k, w_o)
-                _node_light(P, Q, M, thr, ndir, n, leaf, h, moment, lw)
+                lr, lg, lb, wx, wy, wz = _node_light(P, Q, M, thr, ndir, nx, ny, nz, leaf, h,
+                                                     moment, not lambert)
                 if lambert:                               # f_r constant: sum L_k V_k only
-                    acc[0] += lw[0] * v
-                    acc[1] += lw[1] * v
-                    acc[2] += lw[2] * v
+                    ar += lr * v
+                    ag += lg * v
+                    ab += lb * v
                 else:
-                    _accumulate(mats, m, n, wo[t], lw[3], lw[4], lw[5], lw[0], lw[1], lw[2], v, acc)
+                    fr, fg, fb = _brdf(mats, m, n, wo[t], wx, wy, wz)
+                    ar += lr * v * fr
+                    ag += lg * v * fg
+                    ab += lb * v * fb
             leaf += 1 << h
-        if lambert:
-            for c in range(3):
-                acc[c] *= mats[m, 1 + c] * _INV_PI
+        acc = _finish(mats, m, lambert, ar, ag, ab)
         out[t, 0] = acc[0]
         out[t, 1] = acc[1]
         out[t, 2] = acc[2]
@@ -208,6 +229,38 @@ def _collect_vcf(x: np.ndarray, n: np.ndarray, own: int, centers: np.ndarray, ob
     return nc
 
 
+@njit(cache=True, fastmath=True)
+def _interp8(vh: np.ndarray, vv: np.ndarray, p0: np.ndarray, en: np.ndarray, w: np.ndarray,
+             base: int, out_h: np.ndarray, out_v: np.ndarray, o: int) -> int:
+    """Trilinear mix of the 8 VCF cuts p0[base:base+8] into one cut (Steps 1-4, interpolation),
+    written at out[o:]; returns the new end."""
+    p = p0[base:base + 8].copy()
+    c = np.zeros(8, np.int64)
+    while p[0] < en[base]:
+        hmin = 99
+        for j in range(8):
+            if vh[p[j]] < hmin:
+                hmin = vh[p[j]]
+        s = 0.0
+        for j in range(8):
+            s += w[base + j] * vv[p[j]]
+        out_h[o] = hmin
+        out_v[o] = s
+        o += 1
+        step = 1 << hmin
+        for j in range(8):
+            hj = vh[p[j]]
+            if hj == hmin:
+                p[j] += 1
+                c[j] = 0
+            else:
+                c[j] += step
+                if c[j] >= (1 << hj):
+                    p[j] += 1
+                    c[j] = 0
+    return o
+
+
 @njit(cache=True, parallel=True, fastmath=True)
 def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np.ndarray,
                   matid: np.ndarray, mats: np.ndarray, offs: np.ndarray, hs: np.ndarray,
@@ -218,27 +271,39 @@ def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np
                   out: np.ndarray, nodes: np.ndarray) -> None:
     """B = sum_k L_k V_k f_r with V = SVC x prod_objects(trilinear mix of 8 VCF cuts).
 
-    Objects are culled per vertex when the vertex lies beyond the outermost VCF sphere or the
-    object's bounding sphere is under the vertex's horizon plane. The SVC and all VCF cuts are
-    traversed together with per-cut pointers and counters (Steps 1-4); an SVC node of value 0 is
-    skipped whole (its leaf range contributes nothing).
+    Per vertex: cull objects (beyond the outermost VCF sphere, or bounding sphere under the
+    horizon plane); interpolate each remaining object's 8 neighbouring VCF cuts into one cut;
+    then traverse the SVC and the interpolated cuts together with per-cut pointers and counters
+    (Steps 1-4). An SVC node of value 0 is skipped whole (its leaf range contributes nothing).
     """
     for t in prange(vidx.shape[0]):
         i = vidx[t]
         x = pos[i]
         n = normals[i]
-        p = np.empty(_MAXC, np.int64)
-        en = np.empty(_MAXC, np.int64)
-        c = np.zeros(_MAXC, np.int64)
+        p8 = np.empty(_MAXC, np.int64)
+        en8 = np.empty(_MAXC, np.int64)
         w = np.empty(_MAXC)
+        nc8 = _collect_vcf(x, n, own[i], centers, obj_r, radii, grid, pbase, voffs, p8, en8, w)
+        ng = (nc8 - 1) // 8
+        total = 0
+        for j in range(1, nc8):
+            total += en8[j] - p8[j]
+        ih = np.empty(max(total, 1), np.uint8)
+        iv = np.empty(max(total, 1))
+        p = np.empty(ng + 1, np.int64)
+        en = np.empty(ng + 1, np.int64)
+        c = np.zeros(ng + 1, np.int64)
+        o = 0
+        for g in range(ng):                                  # interpolation of 8 cuts per object
+            p[g + 1] = o
+            o = _interp8(vh, vv, p8, en8, w, 1 + 8 * g, ih, iv, o)
+            en[g + 1] = o
         p[0] = offs[i]
         en[0] = offs[i + 1]
-        nc = _collect_vcf(x, n, own[i], centers, obj_r, radii, grid, pbase, voffs, p, en, w)
-        ng = (nc - 1) // 8
         m = matid[i]
         lambert = mats[m, 0] == 0
-        acc = np.zeros(3)
-        lw = np.empty(6)
+        nx, ny, nz = n[0], n[1], n[2]
+        ar = ag = ab = 0.0
         leaf = 0
         cnt = 0
         while p[0] < en[0]:
@@ -246,38 +311,37 @@ def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np
             v0 = vs[p[0]]
             if v0 == 0 and c[0] == 0:                        # skip a dark SVC node whole
                 target = leaf + (1 << h0)
-                for j in range(1, nc):
+                for j in range(1, ng + 1):
                     start = leaf - c[j]
-                    while p[j] < en[j] and start + (1 << vh[p[j]]) <= target:
-                        start += 1 << vh[p[j]]
+                    while p[j] < en[j] and start + (1 << ih[p[j]]) <= target:
+                        start += 1 << ih[p[j]]
                         p[j] += 1
                     c[j] = target - start
                 p[0] += 1
                 leaf = target
                 continue
-            hmin = h0                                        # Step 2: operate at h_min
-            for j in range(1, nc):
-                if vh[p[j]] < hmin:
-                    hmin = vh[p[j]]
+            hmin = h0                                        # Step 2: product at h_min
             val = float(v0)
-            for g in range(ng):
-                s = 0.0
-                for q in range(8):
-                    j = 1 + 8 * g + q
-                    s += w[j] * vv[p[j]]
-                val *= s
+            for j in range(1, ng + 1):
+                if ih[p[j]] < hmin:
+                    hmin = ih[p[j]]
+                val *= iv[p[j]]
             size = 1 << hmin
             if val > 0:
                 cnt += 1
-                _node_light(P, Q, M, thr, ndir, n, leaf, hmin, moment, lw)
+                lr, lg, lb, wx, wy, wz = _node_light(P, Q, M, thr, ndir, nx, ny, nz, leaf, hmin,
+                                                     moment, not lambert)
                 if lambert:
-                    acc[0] += lw[0] * val
-                    acc[1] += lw[1] * val
-                    acc[2] += lw[2] * val
+                    ar += lr * val
+                    ag += lg * val
+                    ab += lb * val
                 else:
-                    _accumulate(mats, m, n, wo[t], lw[3], lw[4], lw[5], lw[0], lw[1], lw[2], val, acc)
-            for j in range(nc):                              # Step 3 (a) / (b)
-                hj = hs[p[0]] if j == 0 else vh[p[j]]
+                    fr, fg, fb = _brdf(mats, m, n, wo[t], wx, wy, wz)
+                    ar += lr * val * fr
+                    ag += lg * val * fg
+                    ab += lb * val * fb
+            for j in range(ng + 1):                          # Step 3 (a) / (b)
+                hj = hs[p[0]] if j == 0 else ih[p[j]]
                 if hj == hmin:
                     p[j] += 1
                     c[j] = 0
@@ -287,9 +351,7 @@ def shade_dynamic(vidx: np.ndarray, pos: np.ndarray, normals: np.ndarray, wo: np
                         p[j] += 1
                         c[j] = 0
             leaf += size
-        if lambert:
-            for ch in range(3):
-                acc[ch] *= mats[m, 1 + ch] * _INV_PI
+        acc = _finish(mats, m, lambert, ar, ag, ab)
         out[t, 0] = acc[0]
         out[t, 1] = acc[1]
         out[t, 2] = acc[2]
@@ -314,8 +376,10 @@ def shade_dense(vis_cos: np.ndarray, rows: np.ndarray, normals: np.ndarray, wo: 
             for j in range(vis_cos.shape[1]):
                 v = vis_cos[t, j]
                 if v > 0:
-                    _accumulate(mats, m, n, wo[t], ldirs[j, 0], ldirs[j, 1], ldirs[j, 2],
-                                leafL[mp, j, 0], leafL[mp, j, 1], leafL[mp, j, 2], v, acc)
+                    fr, fg, fb = _brdf(mats, m, n, wo[t], ldirs[j, 0], ldirs[j, 1], ldirs[j, 2])
+                    acc[0] += leafL[mp, j, 0] * v * fr
+                    acc[1] += leafL[mp, j, 1] * v * fg
+                    acc[2] += leafL[mp, j, 2] * v * fb
             out[mp, t, 0] = acc[0]
             out[mp, t, 1] = acc[1]
             out[mp, t, 2] = acc[2]

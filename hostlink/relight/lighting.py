@@ -75,11 +75,11 @@ def prefix_sums(leaf_light: np.ndarray) -> np.ndarray:
 
 
 def moment_prefix_sums(leaf_light: np.ndarray) -> np.ndarray:
-    """(2^15 + 1, 3, 3) float64 cumulative sums of L_c w_j (channel c, direction component):
-    a node's first light moment in O(1), used by the cosine-moment correction."""
+    """(2^15 + 1, 9) float64 cumulative sums of L_c w_a (column 3 c + a; channel c, direction
+    component a): a node's first light moment in O(1), for the cosine-moment correction."""
     from hostlink.relight.directions import leaf_directions
 
-    q = np.zeros((NDIR + 1, 3, 3))
-    np.cumsum(np.asarray(leaf_light, np.float64)[:, :, None] * leaf_directions()[:, None, :],
-              axis=0, out=q[1:])
+    q = np.zeros((NDIR + 1, 9))
+    prod = np.asarray(leaf_light, np.float64)[:, :, None] * leaf_directions()[:, None, :]
+    np.cumsum(prod.reshape(NDIR, 9), axis=0, out=q[1:])
     return q
