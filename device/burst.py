@@ -174,8 +174,7 @@ class BracketPlanner:
         cand = np.flatnonzero(v >= self.energy_share * total)
         if cand.size == 0:
             return 0.0
-        h, w = v.shape
-        r, c = np.divmod(cand, w)
+        r, c = np.divmod(cand, v.shape[1])
         best = 0.0
         for ri, ci in zip(r, c, strict=True):
             win = v[max(ri - 1, 0):ri + 2, max(ci - 1, 0):ci + 2].copy()

@@ -25,8 +25,8 @@ __all__ = [
     "JRLL",
     "ang2pix_nest",
     "equirect_to_healpix",
-    "healpix_to_equirect",
     "face_xy_to_directions",
+    "healpix_to_equirect",
     "nest_to_xyf",
     "npix",
     "pix2ang_nest",
@@ -248,7 +248,7 @@ def equirect_to_healpix(image: np.ndarray, nside: int) -> np.ndarray:
         c = np.minimum((ph / (2 * np.pi) * w).astype(np.int64), w - 1)
         out[holes] = flat[r * w + c]
     out = out.astype(np.float32)
-    return out.reshape((npix(nside),) + img.shape[2:])
+    return out.reshape((npix(nside), *img.shape[2:]))
 
 
 @functools.lru_cache(maxsize=8)
@@ -282,10 +282,10 @@ def healpix_to_equirect(hp_map: np.ndarray, height: int, width: int | None = Non
     """
     m = np.asarray(hp_map)
     n = m.shape[0]
-    nside = int(round(np.sqrt(n / 12)))
+    nside = round(np.sqrt(n / 12))
     if 12 * nside * nside != n:
         raise ValueError(f"HEALPix map length {n} is not 12 nside^2")
     width = 2 * height if width is None else width
     a = _healpix_to_equirect_matrix(nside, height, width)
     out = np.asarray(a @ m.reshape(n, -1).astype(np.float64)).astype(np.float32)
-    return out.reshape((height, width) + m.shape[1:])
+    return out.reshape((height, width, *m.shape[1:]))

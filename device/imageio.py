@@ -127,7 +127,7 @@ def write_hdr(path: str | os.PathLike[str], image: np.ndarray) -> None:
     try:
         bgr = np.ascontiguousarray(np.asarray(image, np.float32)[..., ::-1])
         if not cv2.imwrite(tmp, bgr):
-            raise InputError(f"{p}: could not write Radiance HDR", param=str(p))
+            raise InputError(f"{p}: could not write Radiance HDR", param=str(p))  # noqa: TRY301
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -56,6 +56,7 @@ class PipelineConfig:
     gain: float = 1.0
     capture_timeout_s: float = 5.0  # per exposure of a burst
     lower: str = "zero"
+    cache_dir: str | None = None  # keep projection tables on disk here (fast restarts)
     sampler_params: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -104,7 +105,7 @@ def tone_map(radiance: np.ndarray, valid: np.ndarray | None = None, width: int =
     """Display image: exposure keyed on the log-average luminance, Reinhard, sRGB, uint8."""
     import cv2
 
-    img = np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    img: np.ndarray = np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     h, w = img.shape[:2]
     if w > width:
         img = cv2.resize(img, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
@@ -177,7 +178,7 @@ class Pipeline:
             cfg = self.config
             self._projector, self._fov_mask = await asyncio.gather(
                 asyncio.to_thread(Projector, self.calibration, equirect_height=cfg.equirect_height,
-                                  nside=cfg.nside, lower=cfg.lower),
+                                  nside=cfg.nside, lower=cfg.lower, cache_dir=cfg.cache_dir),
                 asyncio.to_thread(field_of_view_mask, fe),
             )
         # Warm-up: the first frame after stream-on is slow on real sensors (and the simulator

@@ -57,7 +57,9 @@ async def _run(a: argparse.Namespace) -> int:
 def _open(a: argparse.Namespace):  # type: ignore[no-untyped-def]
     from calibration.model import Calibration
     from device.errors import InputError
+    from drivers.base import Camera
 
+    camera: Camera
     if a.camera == "sim":
         from sim.camera import SimCamera
 

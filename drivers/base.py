@@ -197,7 +197,7 @@ class Camera(abc.ABC):
         """Request control values. Raises ControlOutOfRange before touching the device."""
 
     @abc.abstractmethod
-    async def capture(self, timeout: float = 1.0) -> Frame:
+    async def capture(self, timeout: float = 1.0) -> Frame:  # noqa: ASYNC109 - part of the protocol
         """The next frame. Raises CaptureTimeout, CameraDisconnected."""
 
     # -- helpers shared by backends --

@@ -26,7 +26,7 @@ from drivers.base import Mode, PixelFormat
 from sim.camera import SimCamera
 from sim.scene import Scene
 
-EXPOSURES = [1 / 2000 * 2**i for i in range(10)]  # 0.5 ms .. 0.256 s, 1 stop apart
+EXPOSURES = [1 / 1000 * 2**i for i in range(10)]  # 1 ms .. 0.512 s, 1 stop apart: the room at S = 1e4
 
 
 # ---- response -------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from device import healpix as H
@@ -80,9 +80,9 @@ def test_reads_shared_maps(envmap_paths):
 def test_bad_image_names_the_file(tmp_path):
     bad = tmp_path / "bad.exr"
     bad.write_bytes(b"not an exr")
-    with pytest.raises(InputError, match="bad.exr"):
+    with pytest.raises(InputError, match=r"bad\.exr"):
         read_hdr_image(bad)
-    with pytest.raises(InputError, match="missing.hdr"):
+    with pytest.raises(InputError, match=r"missing\.hdr"):
         read_hdr_image(tmp_path / "missing.hdr")
 
 

@@ -345,3 +345,24 @@ def test_a_lens_narrower_than_the_hemisphere(lower: str) -> None:
     assert not np.any(maps.polar[cov == 0])
     if lower == "mean-horizon":  # the unseen band, the horizon and the ground take the mean
         np.testing.assert_allclose(maps.equirect, level, rtol=1e-5)
+
+
+def test_disk_cache_restores_identical_tables(tmp_path):  # type: ignore[no-untyped-def]
+    """A restart loads the tables from the state dir instead of rebuilding them."""
+    from device.projection import Projector
+    from device.projection.diskcache import cache_path
+
+    cal = _calibration()
+    first = Projector(cal, equirect_height=32, nside=8, cache=False, cache_dir=tmp_path)
+    files = list(tmp_path.glob("projection-*.npz"))
+    assert len(files) == 1
+    again = Projector(cal, equirect_height=32, nside=8, cache=False, cache_dir=tmp_path)
+    img = np.random.default_rng(1).random((*first.lens_mask.shape, 3)).astype(np.float32)
+    a, b = first.project(img), again.project(img)
+    for name in ("polar", "equirect", "healpix"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    # A damaged cache file is ignored and rebuilt, never used
+    files[0].write_bytes(b"garbage")
+    third = Projector(cal, equirect_height=32, nside=8, cache=False, cache_dir=tmp_path)
+    np.testing.assert_array_equal(third.project(img).healpix, a.healpix)
+    assert cache_path(tmp_path, ("x",)) != files[0]

@@ -304,3 +304,30 @@ def test_dispatcher_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str
     with pytest.raises(SystemExit) as e:
         lightprobe(["relight", str(p), "--out", "o.png"])     # --lights missing: argparse
     assert e.value.code == 2
+
+
+def test_render_cache_matches_fresh_render(tiny: tuple) -> None:
+    from hostlink.relight.render import Relighter
+    from hostlink.relight.scene import Camera, Material
+
+    scene, pre, _ = tiny
+    rl = Relighter(scene, pre)
+    rl.set_equirect(sky())
+    rl.render()
+
+    def fresh(cam: Camera) -> np.ndarray:
+        f = Relighter(scene, pre)
+        f.mats = rl.mats.copy()
+        f.translation = rl.translation.copy()
+        f.set_equirect(sky())
+        return f.render(cam)[0]
+
+    cam2 = Camera(np.array([-1.0, 1.2, 2.0]), scene.camera.look_at, scene.camera.up, 45, 64, 48)
+    img, st = rl.render(cam2)                              # view change: glossy cube re-shaded
+    assert 0 < st["shaded_vertices"] < st["visible_vertices"]
+    np.testing.assert_allclose(img, fresh(cam2), rtol=1e-6, atol=1e-9)
+    rl.set_material("floor", Material("lambert", (0.9, 0.1, 0.1)))
+    np.testing.assert_allclose(rl.render(cam2)[0], fresh(cam2), rtol=1e-6, atol=1e-9)
+    rl.move("cube", [0.3, 0, 0.1])
+    np.testing.assert_allclose(rl.render(cam2)[0], fresh(cam2), rtol=1e-6, atol=1e-9)
+    assert rl.render(cam2)[1]["shaded_vertices"] == 0     # nothing changed: all cached

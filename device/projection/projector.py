@@ -5,6 +5,8 @@ Dtype policy: images and maps float32; per-pixel sums float64 inside the kernels
 
 from __future__ import annotations
 
+import logging
+import os
 from dataclasses import dataclass
 from typing import Literal
 
@@ -18,6 +20,8 @@ from .kernels import _spmv_rgb, _spmv_rgb_fix
 from .tables import _TABLE_CACHE, _TABLE_CACHE_SIZE, _build_all
 
 __all__ = ["LOWER_POLICIES", "LowerPolicy", "ProbeMaps", "Projector"]
+
+log = logging.getLogger(__name__)
 
 LowerPolicy = Literal["zero", "mirror", "mean-horizon"]
 LOWER_POLICIES: tuple[str, ...] = ("zero", "mirror", "mean-horizon")
@@ -75,12 +79,15 @@ class Projector:
     subdiv : subpixels per fisheye pixel side for the conservative remap.
     cache : reuse tables built earlier in this process for the same calibration id and
         geometry parameters (the last four are kept; they are read-only and shared).
+    cache_dir : also keep the tables on disk there (the service uses its state directory), so a
+        restart loads them instead of rebuilding (``device.projection.diskcache``).
     """
 
     def __init__(self, calibration: Calibration, *, polar_height: int = 90,
                  equirect_height: int = 256, nside: int = 64, lower: str = "zero",
                  ground_albedo: float = 0.2, horizon_band_deg: float = 5.0,
-                 ring_margin_deg: float = 0.5, subdiv: int = 4, cache: bool = True) -> None:
+                 ring_margin_deg: float = 0.5, subdiv: int = 4, cache: bool = True,
+                 cache_dir: str | os.PathLike[str] | None = None) -> None:
         if calibration.fisheye is None:
             raise InputError("calibration has no fisheye section", param="fisheye")
         if lower not in LOWER_POLICIES:
@@ -96,20 +103,30 @@ class Projector:
         self.lower, self.ground_albedo = lower, float(ground_albedo)
         self.horizon_band_deg, self.ring_margin_deg = float(horizon_band_deg), float(ring_margin_deg)
         self.subdiv = int(subdiv)
-        self._build(cache)
+        self._build(cache, cache_dir)
 
     # -- construction ---------------------------------------------------------------------------
-    def _build(self, cache: bool) -> None:
+    def _build(self, cache: bool, cache_dir: str | os.PathLike[str] | None) -> None:
+        from .diskcache import cache_path, load_built, save_built
+
         key = (self.calibration.id, self.polar_height, self.equirect_height, self.nside,
                self.ring_margin_deg, self.subdiv)
         built = _TABLE_CACHE.get(key) if cache else None
+        path = cache_path(cache_dir, key) if cache_dir is not None else None
+        if built is None and path is not None:
+            built = load_built(path)
         if built is None:
             built = _build_all(self.calibration, self.polar_height, self.equirect_height,
                                self.nside, self.ring_margin_deg, self.subdiv)
-            if cache:
-                _TABLE_CACHE[key] = built
-                while len(_TABLE_CACHE) > _TABLE_CACHE_SIZE:
-                    _TABLE_CACHE.pop(next(iter(_TABLE_CACHE)))
+            if path is not None:
+                try:
+                    save_built(path, built)
+                except OSError as e:  # a read-only or full disk costs only the next start's time
+                    log.warning("cannot write projection cache %s: %s", path, e)
+        if cache:
+            _TABLE_CACHE[key] = built
+            while len(_TABLE_CACHE) > _TABLE_CACHE_SIZE:
+                _TABLE_CACHE.pop(next(iter(_TABLE_CACHE)))
         self.lens_mask = built.lens_mask
         self.pixel_gain = built.pixel_gain
         self._inv_gain = built.inv_gain

@@ -91,18 +91,37 @@ def camera_factory(spec: str, scene: str | None) -> Any:
 
 
 def load_calibration(state_dir: Path, camera: Any) -> Any:
-    """``state_dir/calibration.json`` if present, else the camera's own (the simulator's truth)."""
-    from calibration.model import Calibration
+    """The calibration the pipeline uses, in this order:
 
+    1. the calibration store in the state dir (``calibration.store``: the current version, or the
+       newest valid earlier one when current is corrupt, with the error logged);
+    2. ``state_dir/calibration.json`` (a file an installer copied in by hand);
+    3. the camera's own ground truth (the simulator).
+
+    A hardware camera with none of these gets an InputError naming what to do.
+    """
+    from calibration.model import Calibration
+    from calibration.store import CalibrationStore
+    from device.errors import InputError
+
+    found = CalibrationStore(state_dir).load()
+    for err in found.errors:
+        log.error("calibration store: %s", err)
+    if found.calibration is not None:
+        return found.calibration
     p = state_dir / "calibration.json"
     if p.exists():
-        return Calibration.from_json(json.loads(p.read_text(encoding="utf-8")))
+        try:
+            return Calibration.from_json(json.loads(p.read_text(encoding="utf-8")))
+        except (OSError, ValueError) as e:
+            raise InputError(f"{p}: {e}", param="calibration") from e
     for attr in ("truth_calibration", "calibration"):
         cal = getattr(camera, attr, None)
         cal = cal() if callable(cal) else cal
         if cal is not None:
             return cal
-    return Calibration()
+    raise InputError(f"no calibration for camera {getattr(camera, 'name', '?')!r} in {state_dir} "
+                     "(make one with 'lightprobe calibrate fisheye ... --state DIR')", param="calibration")
 
 
 class PipelineFactory:
@@ -118,7 +137,8 @@ class PipelineFactory:
                               light_count=cfg.get("pipeline", "light_count"),
                               max_exposures=cfg.get("pipeline", "max_exposures"),
                               equirect_height=cfg.get("pipeline", "equirect_height"),
-                              nside=cfg.get("pipeline", "nside"), probe_id=self.probe_id)
+                              nside=cfg.get("pipeline", "nside"), probe_id=self.probe_id,
+                              cache_dir=str(self.state_dir / "cache"))
 
     def __call__(self, camera: Any, cfg: Any) -> Any:
         from device.pipeline import Pipeline

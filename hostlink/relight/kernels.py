@@ -123,12 +123,36 @@ def _node_light(P: np.ndarray, Q: np.ndarray, M: np.ndarray, thr: np.ndarray, nd
     return lr, lg, lb, wx, wy, wz
 
 
+@njit(cache=True, parallel=True)
+def svc_weights(normals: np.ndarray, offs: np.ndarray, hs: np.ndarray, vs: np.ndarray,
+                M: np.ndarray, thr: np.ndarray, moment: bool, out: np.ndarray) -> None:
+    """Light-independent per-node factors for :func:`shade_static`: ``v / (n . M_k)`` (> 0) for
+    nodes that take the cosine-moment correction (entirely above the horizon, height > 0),
+    ``-v`` (<= 0) for the others; 0 for dark nodes."""
+    for i in prange(offs.shape[0] - 1):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        leaf = 0
+        for q in range(offs[i], offs[i + 1]):
+            h = hs[q]
+            v = vs[q]
+            node = (1 << (15 - h)) + (leaf >> h)
+            nm = nx * M[node, 0] + ny * M[node, 1] + nz * M[node, 2]
+            if v != 0 and moment and h > 0 and nm > thr[node]:
+                out[q] = v / nm
+            else:
+                out[q] = -v
+            leaf += 1 << h
+
+
 @njit(cache=True, parallel=True, fastmath=True)
 def shade_static(vidx: np.ndarray, normals: np.ndarray, wo: np.ndarray, matid: np.ndarray,
-                 mats: np.ndarray, offs: np.ndarray, hs: np.ndarray, vs: np.ndarray,
-                 ndir: np.ndarray, P: np.ndarray, Q: np.ndarray, M: np.ndarray, thr: np.ndarray,
-                 moment: bool, out: np.ndarray) -> None:
-    """B = sum over SVC nodes of L_k V_k f_r (static scene: one cut per vertex)."""
+                 mats: np.ndarray, offs: np.ndarray, hs: np.ndarray, sw: np.ndarray,
+                 ndir: np.ndarray, P: np.ndarray, Q: np.ndarray, out: np.ndarray) -> None:
+    """B = sum over SVC nodes of L_k V_k f_r (static scene: one cut per vertex).
+
+    ``sw`` from :func:`svc_weights`. Prefix-sum rows at a node's end are reused as the next
+    node's start (nodes are contiguous in leaf order), so each node loads one P and one Q row.
+    """
     for t in prange(vidx.shape[0]):
         i = vidx[t]
         m = matid[i]
@@ -137,22 +161,51 @@ def shade_static(vidx: np.ndarray, normals: np.ndarray, wo: np.ndarray, matid: n
         nx, ny, nz = n[0], n[1], n[2]
         ar = ag = ab = 0.0
         leaf = 0
+        last = -1
+        p0 = p1 = p2 = 0.0
+        q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = q8 = 0.0
         for q in range(offs[i], offs[i + 1]):
             h = hs[q]
-            v = vs[q]
-            if v != 0:                                    # Eq. 3: L_k V_k f_r(w_k, w_o)
-                lr, lg, lb, wx, wy, wz = _node_light(P, Q, M, thr, ndir, nx, ny, nz, leaf, h,
-                                                     moment, not lambert)
-                if lambert:                               # f_r constant: sum L_k V_k only
-                    ar += lr * v
-                    ag += lg * v
-                    ab += lb * v
+            w = sw[q]
+            e = leaf + (1 << h)
+            if w != 0:                                    # Eq. 3: L_k V_k f_r(w_k, w_o)
+                if last != leaf:
+                    p0, p1, p2 = P[leaf, 0], P[leaf, 1], P[leaf, 2]
+                    r = Q[leaf]
+                    q0, q1, q2, q3, q4, q5, q6, q7, q8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
+                e0, e1, e2 = P[e, 0], P[e, 1], P[e, 2]
+                r = Q[e]
+                d0, d1, d2, d3, d4, d5 = r[0] - q0, r[1] - q1, r[2] - q2, r[3] - q3, r[4] - q4, r[5] - q5
+                d6, d7, d8 = r[6] - q6, r[7] - q7, r[8] - q8
+                if w > 0:                                 # cosine-moment corrected node
+                    lr = (nx * d0 + ny * d1 + nz * d2) * w
+                    lg = (nx * d3 + ny * d4 + nz * d5) * w
+                    lb = (nx * d6 + ny * d7 + nz * d8) * w
                 else:
+                    lr = (e0 - p0) * -w
+                    lg = (e1 - p1) * -w
+                    lb = (e2 - p2) * -w
+                if lambert:                               # f_r constant: sum L_k V_k only
+                    ar += lr
+                    ag += lg
+                    ab += lb
+                else:
+                    node = (1 << (15 - h)) + (leaf >> h)
+                    wx, wy, wz = ndir[node, 0], ndir[node, 1], ndir[node, 2]
+                    c0 = d0 + d3 + d6
+                    c1 = d1 + d4 + d7
+                    c2 = d2 + d5 + d8
+                    sl = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+                    if w > 0 and sl > 0:                  # BRDF at the light centroid
+                        wx, wy, wz = c0 / sl, c1 / sl, c2 / sl
                     fr, fg, fb = _brdf(mats, m, n, wo[t], wx, wy, wz)
-                    ar += lr * v * fr
-                    ag += lg * v * fg
-                    ab += lb * v * fb
-            leaf += 1 << h
+                    ar += lr * fr
+                    ag += lg * fg
+                    ab += lb * fb
+                p0, p1, p2 = e0, e1, e2
+                q0, q1, q2, q3, q4, q5, q6, q7, q8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
+                last = e
+            leaf = e
         acc = _finish(mats, m, lambert, ar, ag, ab)
         out[t, 0] = acc[0]
         out[t, 1] = acc[1]

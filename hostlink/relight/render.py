@@ -20,7 +20,7 @@ from numba import njit
 
 from device.sampling.base import LightSet
 from hostlink.relight.directions import node_directions, node_moments
-from hostlink.relight.kernels import shade_dynamic, shade_static
+from hostlink.relight.kernels import shade_dynamic, shade_static, svc_weights
 from hostlink.relight.lighting import (
     leaf_light_from_equirect,
     leaf_light_from_lightset,
@@ -132,6 +132,11 @@ class Relighter:
         self.translation = np.zeros((len(scene.objects), 3))
         self._ndir = node_directions()
         self._M, self._thr = node_moments()
+        n = len(pre.vertices)
+        self._rad = np.zeros((n, 3))            # per-vertex radiance cache of render()
+        self._valid = np.zeros(n, bool)
+        self._eye: tuple[float, ...] | None = None
+        self._cache_moment = moment
         self.set_leaf_light(np.zeros((1 << 15, 3)))
         self._pack_vcf()
 
@@ -162,6 +167,7 @@ class Relighter:
     def set_leaf_light(self, leaf_light: np.ndarray) -> None:
         self._P = prefix_sums(leaf_light)
         self._Q = moment_prefix_sums(leaf_light)
+        self._valid[:] = False
 
     def set_equirect(self, img: np.ndarray) -> None:
         self.set_leaf_light(leaf_light_from_equirect(img))
@@ -171,7 +177,9 @@ class Relighter:
 
     def set_material(self, name: str, material: Material) -> None:
         """Edit a BRDF at run time (no precomputation depends on it)."""
-        self.mats[self._mat_names.index(name)] = material.row()
+        k = self._mat_names.index(name)
+        self.mats[k] = material.row()
+        self._valid[self.matid == k] = False
 
     def move(self, name: str, translation: np.ndarray) -> None:
         """Translate a movable object (relative to its precompute pose)."""
@@ -179,6 +187,7 @@ class Relighter:
         if k not in self.movable:
             raise ValueError(f"object {name!r} is not movable")
         self.translation[k] = np.asarray(translation, float)
+        self._valid[:] = False
 
     @property
     def moved(self) -> bool:
@@ -188,6 +197,16 @@ class Relighter:
         return self.pre.vertices + self.translation[self.pre.object_id]
 
     # ---- shading ------------------------------------------------------------------------
+    def _svc_weights(self) -> np.ndarray:
+        """Per-SVC-node factors (light independent), recomputed when ``moment`` is toggled."""
+        if getattr(self, "_sw_flag", None) is not self.moment:
+            pre = self.pre
+            self._sw = np.empty(len(pre.svc_values))
+            svc_weights(pre.normals, pre.svc_offsets, pre.svc_heights, pre.svc_values,
+                        self._M, self._thr, self.moment, self._sw)
+            self._sw_flag = self.moment
+        return self._sw
+
     def vertex_radiance(self, eye: np.ndarray, vidx: np.ndarray | None = None,
                         use_vcf: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Outgoing radiance (n, 3) float64 towards ``eye`` at vertices ``vidx`` (all if None),
@@ -208,28 +227,40 @@ class Relighter:
                           self._voffs, self._vh, self._vv, out, nodes)
             return out, nodes
         shade_static(vidx, pre.normals, wo, self.matid, self.mats, pre.svc_offsets,
-                     pre.svc_heights, pre.svc_values, self._ndir, self._P, self._Q, self._M,
-                     self._thr, self.moment, out)
+                     pre.svc_heights, self._svc_weights(), self._ndir, self._P, self._Q, out)
         return out, np.diff(pre.svc_offsets)[vidx]
 
     def render(self, cam: Camera | None = None, background: np.ndarray | None = None,
                raster: Raster | None = None) -> tuple[np.ndarray, dict[str, float]]:
         """Image (H, W, 3) float32 linear; background pixels show ``background`` (an equirect
-        map, looked up along the view ray) or black. Returns (image, stats)."""
+        map, looked up along the view ray) or black. Returns (image, stats).
+
+        Only vertices visible in the ID buffer are shaded, and only those whose cached radiance
+        is stale: a light change or a move re-shades all, a BRDF edit that material's vertices,
+        a view change the non-Lambertian ones (Lambertian radiance does not depend on w_o)."""
         cam = cam or self.scene.camera
         raster = raster or rasterize(cam, self.positions(), self.pre.faces)
+        eye = tuple(float(x) for x in cam.position)
+        if self.moment != self._cache_moment:
+            self._valid[:] = False
+            self._cache_moment = self.moment
+        if eye != self._eye:
+            self._valid[self.mats[self.matid, 0] != 0] = False
+            self._eye = eye
         hit = raster.tri >= 0
         tris = self.pre.faces[raster.tri[hit]]
         visible = np.unique(tris)                                   # ID-buffer culling
-        rad, nodes = self.vertex_radiance(np.asarray(cam.position, float), visible,
-                                          use_vcf=bool(self.movable))
-        lut = np.zeros((len(self.pre.vertices), 3))
-        lut[visible] = rad
+        need = visible[~self._valid[visible]]
+        nodes = np.zeros(0)
+        if len(need):
+            self._rad[need], nodes = self.vertex_radiance(np.asarray(eye), need, use_vcf=bool(self.movable))
+            self._valid[need] = True
         img = np.zeros((*raster.tri.shape, 3), np.float32)
-        img[hit] = np.einsum("pk,pkc->pc", raster.bary[hit], lut[tris]).astype(np.float32)
+        img[hit] = np.einsum("pk,pkc->pc", raster.bary[hit], self._rad[tris]).astype(np.float32)
         if background is not None:
             img[~hit] = _lookup_equirect(background, raster.rays[~hit])
-        return img, {"visible_vertices": float(len(visible)), "mean_nodes": float(nodes.mean()) if len(nodes) else 0.0}
+        return img, {"visible_vertices": float(len(visible)), "shaded_vertices": float(len(need)),
+                     "mean_nodes": float(nodes.mean()) if len(nodes) else 0.0}
 
 
 def _lookup_equirect(img: np.ndarray, d: np.ndarray) -> np.ndarray:
