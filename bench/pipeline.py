@@ -110,8 +110,10 @@ def _accuracy(scene: str) -> dict[str, Any]:
     polar_e = float(np.tensordot(omega_p, maps.polar.astype(np.float64).sum(axis=1), axes=(0, 0)).sum())
     from device.healpix import pix2vec_nest, pixel_solid_angle
 
-    up = pix2vec_nest(maps.nside, np.arange(maps.healpix.shape[0]))[:, 1] > 0
-    hp_e = float(maps.healpix[up].astype(np.float64).sum() * pixel_solid_angle(maps.nside))
+    # Upper hemisphere: pixels centred on the equator ring are symmetric about it (half above)
+    y = pix2vec_nest(maps.nside, np.arange(maps.healpix.shape[0]))[:, 1]
+    up = np.where(y > 1e-9, 1.0, np.where(y > -1e-9, 0.5, 0.0))
+    hp_e = float(up @ maps.healpix.astype(np.float64).sum(axis=1) * pixel_solid_angle(maps.nside))
     return {"scene": scene, "exposures_s": [float(e) for e in exposures], "n_exposures": len(exposures),
             "median_rel_err": float(np.median(rel)), "p99_rel_err": float(np.percentile(rel, 99)),
             "saturated_in_shortest_px": int((fov & ~unsat).sum()),
@@ -181,6 +183,8 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         "remap_equivalents": round(pf["remap_equivalents"], 2),
         "hdr_median_rel_err": {r["scene"]: round(r["median_rel_err"], 4) for r in result["accuracy"]},
         "exposures": {r["scene"]: r["n_exposures"] for r in result["accuracy"]},
+        # Adaptive bracketing: exposures per burst below the configured maximum (8)
+        "exposures_saved": {r["scene"]: 8 - r["n_exposures"] for r in result["accuracy"]},
     }
     (out_dir / "pipeline.json").write_text(json.dumps(result, indent=1))
     _plot(out_dir, result)

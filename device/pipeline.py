@@ -156,6 +156,7 @@ class Pipeline:
         self._last_sampled: tuple[np.ndarray, float, bool] | None = None
         self._frame = 0
         self._current_exposure: float | None = None
+        self._extra_lights = 0  # leaves a tree sampler spends on empty regions (see _sample)
         self._started = False
 
     # ---- lifecycle ----------------------------------------------------------------------------
@@ -307,7 +308,20 @@ class Pipeline:
         return "relative" if self.calibration.photometric is None else self.calibration.photometric.unit
 
     def _sample(self, sampler: Any, equirect: np.ndarray, count: int) -> Any:
-        lights = sampler.sample(equirect, count)
+        """``count`` lights that carry energy. A tree sampler keeps leaves over the empty lower
+        hemisphere (its 12 base quads cannot merge); those are not published, and the sampler
+        is asked for as many more as it wasted last time, so hosts get ``count`` useful lights."""
+        for _ in range(8):  # converges in 1-3 calls; later frames reuse the estimate
+            lights = sampler.sample(equirect, count + self._extra_lights)
+            keep = lights.rgb.sum(axis=1) > 0
+            wasted = int((~keep).sum())
+            short = count - (len(lights) - wasted)
+            if short == 0 or keep.sum() == 0 or (short > 0 and wasted == 0):
+                break
+            self._extra_lights = max(0, self._extra_lights + short)
+        if not keep.all():
+            lights = replace(lights, directions=lights.directions[keep], rgb=lights.rgb[keep],
+                             solid_angle=lights.solid_angle[keep], ids=lights.ids[keep])
         lights.probe = self.config.probe_id
         lights.unit = self.unit
         if self.calibration.pose is not None:

@@ -93,3 +93,13 @@ def test_tone_map_handles_black_nan_and_huge_values():
     out = tone_map(img)
     assert out.dtype == np.uint8
     assert out[1, 1].max() == 255
+
+
+async def test_tree_sampler_publishes_exactly_the_requested_useful_lights():
+    """Q2-Tree keeps leaves over the empty lower hemisphere; none is published, and the count
+    still comes out exact."""
+    pipe, results = await _run("room", 2, sampler="q2tree", light_count=100)
+    for r in results:
+        assert len(r.lights) == 100
+        assert (r.lights.rgb.sum(axis=1) > 0).all()
+        np.testing.assert_allclose(r.lights.total, equirect_integral(r.equirect), rtol=1e-5)

@@ -104,9 +104,11 @@ def load_calibration(state_dir: Path, camera: Any) -> Any:
     from calibration.store import CalibrationStore
     from device.errors import InputError
 
-    found = CalibrationStore(state_dir).load()
-    for err in found.errors:
-        log.error("calibration store: %s", err)
+    store = CalibrationStore(state_dir)
+    found = store.load()
+    if store.versions():  # a store that exists but is damaged: say so (a fresh unit has none)
+        for err in found.errors:
+            log.error("calibration store: %s", err)
     if found.calibration is not None:
         return found.calibration
     p = state_dir / "calibration.json"
@@ -234,7 +236,7 @@ async def serve(a: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lightprobe serve", description="Run the probe service "
                                 "(HTTP/WebSocket API under /api/v1, dashboard at /, mDNS advertising).")
-    p.add_argument("--camera", default="sim", help="sim | v4l2:/dev/videoN | libcamera | uvc (default sim)")
+    p.add_argument("--camera", default="sim", help="sim | auto | v4l2:/dev/videoN | libcamera | uvc[:VID:PID] (default sim)")
     p.add_argument("--scene", default=None, help="simulator scene NAME or map PATH (default flashlight)")
     p.add_argument("--host", default=None, help="listen address (default from config, 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="listen port (default from config, 8080; 0 = any)")

@@ -15,12 +15,10 @@ one. Validation raises :class:`device.errors.InputError` naming the ``table.key`
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
 import os
 import re
-import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -204,24 +202,10 @@ def dump_toml(data: dict[str, dict[str, Any]]) -> str:
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically: temp + fsync + rename + fsync of the directory."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    dfd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
+    """Write ``text`` (UTF-8) to ``path`` atomically (``device.fsutil.atomic_write``)."""
+    from device.fsutil import atomic_write
+
+    atomic_write(path, text.encode("utf-8"))
 
 
 def save_config(cfg: ServiceConfig, path: str | os.PathLike[str] | None = None) -> None:
