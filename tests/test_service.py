@@ -349,7 +349,9 @@ async def test_camera_disconnect_turns_lights_stale_then_recovers(tmp_path: Path
         assert code in (200, 503)
         # the stream also says stale, then fresh again
         saw_stale = False
+        deadline = time.monotonic() + 20.0
         while True:
+            assert time.monotonic() < deadline, f"stream never turned stale then fresh (stale seen: {saw_stale})"
             d = json.loads((await ws.receive(timeout=8)).data)
             saw_stale |= d["stale"]
             if saw_stale and not d["stale"]:
