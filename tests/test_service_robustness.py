@@ -146,8 +146,9 @@ from device.service.config import ServiceConfig, save_config
 a = ServiceConfig().with_patch({"probe": {"name": "A" * 60}, "pipeline": {"fps": 1.5}})
 b = ServiceConfig().with_patch({"probe": {"name": "B" * 60}, "pipeline": {"fps": 2.5},
                                  "service": {"cors_origins": ["http://x.example"] * 30}})
+save_config(b, sys.argv[1])  # an old config exists before the kills start
 print("ready", flush=True)
-i = 0
+i = 1
 while True:
     save_config(a if i % 2 else b, sys.argv[1])
     i += 1

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from device.errors import InputError
+from device.fsutil import atomic_write
 
 __all__ = [
     "SAMPLERS",
@@ -203,8 +204,6 @@ def dump_toml(data: dict[str, dict[str, Any]]) -> str:
 
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically (``device.fsutil.atomic_write``)."""
-    from device.fsutil import atomic_write
-
     atomic_write(path, text.encode("utf-8"))
 
 
