@@ -49,7 +49,13 @@ from drivers.base import (
     FrameMetadata,
     Mode,
 )
-from drivers.v4l2.controls import EXPOSURE_UNIT_S, ControlBackend, ControlInfo, V4L2Controls
+from drivers.v4l2.controls import (
+    EXPOSURE_UNIT_S,
+    ControlBackend,
+    ControlInfo,
+    ControlRanges,
+    V4L2Controls,
+)
 from drivers.v4l2.settle import SettleTracker, frame_level
 
 __all__ = [
@@ -140,7 +146,7 @@ def _vc_interface(dev: usb.core.Device) -> Any:
     return None
 
 
-class UvcControls:
+class UvcControls(ControlRanges):
     """Exposure/gain (and extension-unit) controls of one UVC device over pyusb.
 
     Implements :class:`drivers.v4l2.controls.ControlBackend`. Gain factor = raw / GET_DEF.
@@ -260,19 +266,6 @@ class UvcControls:
         if topo.processing_unit is not None and topo.processing_controls >> 9 & 1:
             self.gain = self._range(topo.processing_unit, PU_GAIN, 2, "gain")
 
-    @property
-    def exposure_range(self) -> tuple[float, float]:
-        assert self.exposure is not None
-        return (max(self.exposure.minimum, 1) * EXPOSURE_UNIT_S, self.exposure.maximum * EXPOSURE_UNIT_S)
-
-    def _unity(self) -> int:
-        return max(self.gain.default, 1) if self.gain is not None else 1
-
-    @property
-    def gain_range(self) -> tuple[float, float]:
-        if self.gain is None:
-            return (1.0, 1.0)
-        return (max(self.gain.minimum, 1) / self._unity(), self.gain.maximum / self._unity())
 
     @property
     def ae_mode(self) -> int:

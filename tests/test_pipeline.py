@@ -98,7 +98,7 @@ def test_tone_map_handles_black_nan_and_huge_values():
 async def test_tree_sampler_publishes_exactly_the_requested_useful_lights():
     """Q2-Tree keeps leaves over the empty lower hemisphere; none is published, and the count
     still comes out exact."""
-    pipe, results = await _run("room", 2, sampler="q2tree", light_count=100)
+    _pipe, results = await _run("room", 2, sampler="q2tree", light_count=100)
     for r in results:
         assert len(r.lights) == 100
         assert (r.lights.rgb.sum(axis=1) > 0).all()

@@ -24,7 +24,7 @@ from drivers.base import ControlNotSupported
 from . import _structs as S
 from ._ioctl import IoctlError, IoctlTransport
 
-__all__ = ["EXPOSURE_UNIT_S", "ControlBackend", "ControlInfo", "V4L2Controls"]
+__all__ = ["EXPOSURE_UNIT_S", "ControlBackend", "ControlInfo", "ControlRanges", "V4L2Controls"]
 
 log = logging.getLogger(__name__)
 EXPOSURE_UNIT_S = 1e-4  # V4L2_CID_EXPOSURE_ABSOLUTE and UVC CT_EXPOSURE_TIME_ABSOLUTE: 100 us
@@ -70,7 +70,29 @@ class ControlBackend(Protocol):
         ...
 
 
-class V4L2Controls:
+class ControlRanges:
+    """Exposure and gain ranges in SI from device-unit controls, shared by V4L2 and UVC: exposure
+    in 100 us units, gain as a factor of the control's default (1 = the device's unity gain)."""
+
+    exposure: ControlInfo | None
+    gain: ControlInfo | None
+
+    @property
+    def exposure_range(self) -> tuple[float, float]:
+        assert self.exposure is not None
+        return (max(self.exposure.minimum, 1) * EXPOSURE_UNIT_S, self.exposure.maximum * EXPOSURE_UNIT_S)
+
+    def _unity(self) -> int:
+        return max(self.gain.default, 1) if self.gain is not None else 1
+
+    @property
+    def gain_range(self) -> tuple[float, float]:
+        if self.gain is None:
+            return (1.0, 1.0)
+        return (max(self.gain.minimum, 1) / self._unity(), self.gain.maximum / self._unity())
+
+
+class V4L2Controls(ControlRanges):
     """Exposure/gain through V4L2 control ids on an open node.
 
     Gain: V4L2_CID_GAIN has no unit; the factor reported is ``raw / default`` (the default is
@@ -128,19 +150,6 @@ class V4L2Controls:
                 device=self.t.path,
             )
 
-    @property
-    def exposure_range(self) -> tuple[float, float]:
-        assert self.exposure is not None
-        return (max(self.exposure.minimum, 1) * EXPOSURE_UNIT_S, self.exposure.maximum * EXPOSURE_UNIT_S)
-
-    def _unity(self) -> int:
-        return max(self.gain.default, 1) if self.gain is not None else 1
-
-    @property
-    def gain_range(self) -> tuple[float, float]:
-        if self.gain is None:
-            return (1.0, 1.0)
-        return (max(self.gain.minimum, 1) / self._unity(), self.gain.maximum / self._unity())
 
     def current(self) -> tuple[float, float]:
         exp = self.get_raw(S.V4L2_CID_EXPOSURE_ABSOLUTE) * EXPOSURE_UNIT_S
