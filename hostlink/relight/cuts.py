@@ -200,7 +200,8 @@ def merge_cuts(heights: np.ndarray, values: np.ndarray, starts: np.ndarray, ends
     return n
 
 
-def _stack(cuts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, ...]:
+def _stack(cuts: list[tuple[np.ndarray, np.ndarray]]
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     hs = np.concatenate([np.asarray(h, np.int64) for h, _ in cuts])
     vs = np.concatenate([np.asarray(v, np.float64) for _, v in cuts])
     lens = np.array([len(h) for h, _ in cuts], np.int64)

@@ -296,7 +296,7 @@ def _save(path: Path, pc: Precomputed) -> None:
             arrays[f"vcf{k}_{name}"] = getattr(f, name)
         arrays[f"vcf{k}_meta"] = np.array([f.radius, f.grid])
     tmp = path.with_suffix(f".tmp{os.getpid()}.npz")
-    np.savez(tmp, **arrays)
+    np.savez(tmp, **arrays)  # type: ignore[arg-type]
     os.replace(tmp, path)
 
 
