@@ -156,6 +156,34 @@ def is_cut(heights: np.ndarray) -> bool:
 
 # ---- counter-based traversal of several cuts (Steps 1-4, Fig. 6) --------------------------------
 @njit(cache=True)
+def min_height(heights: np.ndarray, p: np.ndarray, m: int) -> int:
+    """Smallest height among the m nodes the pointers p point at (Step 2's h_min)."""
+    hmin = 99
+    for j in range(m):
+        hj = heights[p[j]]
+        if hj < hmin:
+            hmin = hj
+    return hmin
+
+
+@njit(cache=True)
+def advance_counters(heights: np.ndarray, p: np.ndarray, c: np.ndarray, m: int, hmin: int) -> None:
+    """Step 3: (a) a cut whose node has height h_min moves on, its counter reset; (b) any other
+    adds 2^h_min to its counter and moves on once the counter reaches 2^h_j."""
+    step = 1 << hmin
+    for j in range(m):
+        hj = heights[p[j]]
+        if hj == hmin:
+            p[j] += 1
+            c[j] = 0
+        else:
+            c[j] += step
+            if c[j] >= (1 << hj):
+                p[j] += 1
+                c[j] = 0
+
+
+@njit(cache=True)
 def merge_cuts(heights: np.ndarray, values: np.ndarray, starts: np.ndarray, ends: np.ndarray,
                weights: np.ndarray, mode: int, out_h: np.ndarray, out_v: np.ndarray) -> int:
     """Combine m height-coded cuts node by node; mode 0 = product, 1 = sum of ``weights * v``.
@@ -170,11 +198,7 @@ def merge_cuts(heights: np.ndarray, values: np.ndarray, starts: np.ndarray, ends
     c = np.zeros(m, np.int64)
     n = 0
     while p[0] < ends[0]:
-        hmin = 99
-        for j in range(m):
-            hj = heights[p[j]]
-            if hj < hmin:
-                hmin = hj
+        hmin = min_height(heights, p, m)
         if mode == 0:                                          # Step 2
             acc = 1.0
             for j in range(m):
@@ -186,17 +210,7 @@ def merge_cuts(heights: np.ndarray, values: np.ndarray, starts: np.ndarray, ends
         out_h[n] = hmin
         out_v[n] = acc
         n += 1
-        step = 1 << hmin
-        for j in range(m):                                     # Step 3
-            hj = heights[p[j]]
-            if hj == hmin:
-                p[j] += 1
-                c[j] = 0
-            else:
-                c[j] += step
-                if c[j] >= (1 << hj):
-                    p[j] += 1
-                    c[j] = 0
+        advance_counters(heights, p, c, m, hmin)               # Step 3
     return n
 
 

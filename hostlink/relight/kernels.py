@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from hostlink.relight.cuts import advance_counters, min_height
+
 __all__ = ["brdf_spec", "shade_dense", "shade_dynamic", "shade_static"]
 
 _INV_PI = 1.0 / np.pi
@@ -290,27 +292,14 @@ def _interp8(vh: np.ndarray, vv: np.ndarray, p0: np.ndarray, en: np.ndarray, w: 
     p = p0[base:base + 8].copy()
     c = np.zeros(8, np.int64)
     while p[0] < en[base]:
-        hmin = 99
-        for j in range(8):
-            if vh[p[j]] < hmin:
-                hmin = vh[p[j]]
+        hmin = min_height(vh, p, 8)
         s = 0.0
         for j in range(8):
             s += w[base + j] * vv[p[j]]
         out_h[o] = hmin
         out_v[o] = s
         o += 1
-        step = 1 << hmin
-        for j in range(8):
-            hj = vh[p[j]]
-            if hj == hmin:
-                p[j] += 1
-                c[j] = 0
-            else:
-                c[j] += step
-                if c[j] >= (1 << hj):
-                    p[j] += 1
-                    c[j] = 0
+        advance_counters(vh, p, c, 8, hmin)
     return o
 
 
