@@ -32,16 +32,12 @@ from numba import njit
 
 from device.sphere import directions_from_angles, equirect_row_solid_angle
 
+from ._pixels import clean_pixel
 from .base import LightSet
 from .distribution import Distribution2D, halton
 
 __all__ = ["PharrSampler", "clean_lookup", "empty_lightset", "prepare_density",
            "rescale_to_total"]
-
-
-@njit(cache=True)
-def _clean(v):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
-    return v if (v >= 0.0 and v < np.inf) else 0.0
 
 
 @njit(cache=True)
@@ -61,16 +57,7 @@ def _prepare(img, omega):  # type: ignore[no-untyped-def]  # pragma: no cover - 
         cum[r, 0] = 0.0
         om = omega[r]
         for c in range(w):
-            vr = np.float64(img[r, c, 0])
-            vg = np.float64(img[r, c, 1])
-            vb = np.float64(img[r, c, 2])
-            if not (vr >= 0.0 and vg >= 0.0 and vb >= 0.0 and vr + vg + vb < np.inf):
-                for v in (vr, vg, vb):  # slow path: count and zero invalid values
-                    if not np.isfinite(v):
-                        bad[0] += 1
-                    elif v < 0.0:
-                        bad[1] += 1
-                vr, vg, vb = _clean(vr), _clean(vg), _clean(vb)
+            vr, vg, vb = clean_pixel(img, r, c, bad)
             sr += vr
             sg += vg
             sb += vb
