@@ -63,7 +63,7 @@ from numba import njit
 
 from device.sphere import LUMINANCE_WEIGHTS, equirect_row_solid_angle, luminance
 
-from ._pixels import clean_pixel
+from ._pixels import clean_invalid
 from .base import LightSet
 from .distribution import ONE_MINUS_EPSILON, Distribution2D, halton, sample_one
 from .havran import PDF_UV_TO_OMEGA, hemisphere_to_square, square_to_hemisphere
@@ -150,7 +150,11 @@ def _splat_rows_kernel(img, cell, omega, ncells):  # type: ignore[no-untyped-def
         om = omega[r]
         for c in range(img.shape[1]):
             k = cell[r, c]
-            vr, vg, vb = clean_pixel(img, r, c, bad)
+            vr = np.float64(img[r, c, 0])
+            vg = np.float64(img[r, c, 1])
+            vb = np.float64(img[r, c, 2])
+            if not (vr >= 0.0 and vg >= 0.0 and vb >= 0.0 and vr + vg + vb < np.inf):
+                vr, vg, vb = clean_invalid(vr, vg, vb, bad)
             out[k, 0] += vr * om
             out[k, 1] += vg * om
             out[k, 2] += vb * om

@@ -32,7 +32,7 @@ from numba import njit
 
 from device.sphere import directions_from_angles, equirect_row_solid_angle
 
-from ._pixels import clean_pixel
+from ._pixels import clean_invalid
 from .base import LightSet
 from .distribution import Distribution2D, halton
 
@@ -57,7 +57,11 @@ def _prepare(img, omega):  # type: ignore[no-untyped-def]  # pragma: no cover - 
         cum[r, 0] = 0.0
         om = omega[r]
         for c in range(w):
-            vr, vg, vb = clean_pixel(img, r, c, bad)
+            vr = np.float64(img[r, c, 0])
+            vg = np.float64(img[r, c, 1])
+            vb = np.float64(img[r, c, 2])
+            if not (vr >= 0.0 and vg >= 0.0 and vb >= 0.0 and vr + vg + vb < np.inf):
+                vr, vg, vb = clean_invalid(vr, vg, vb, bad)
             sr += vr
             sg += vg
             sb += vb
