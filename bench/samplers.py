@@ -19,15 +19,22 @@ disc's rasterised pixels per frame),
 * displacement = power-weighted angle (degrees) from each light to the nearest light of the
   previous frame (method-agnostic: needs no ids).
 
-Plus the effect of Hemigon's filter parameters on those figures. Times are ``min`` over
-repetitions (the box is shared; min is the least disturbed run), in milliseconds.
+Plus the effect of Hemigon's filter parameters on those figures, and the Q2-Tree's incremental
+update against its full build end to end and for the tree alone (:func:`incremental_bench`:
+local, gain and noise sequences on the 1k maps and on the device's 512 x 256 equirect and
+nside-64 HEALPix inputs). Times are ``min`` over repetitions (the box is shared; min is the
+least disturbed run; medians are kept beside them), in milliseconds; the load average at the
+start and end of the run is recorded (``summary.load_average``). ``--quick`` (3 maps, 3 counts,
+one repetition, short sequences) takes about 20 s.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -57,16 +64,17 @@ def _shared_data() -> Path:
     return ROOT.parent / "shared" / "data"
 
 
-def _min_time(fn: Callable[[], object], reps: int) -> tuple[float, float]:
-    """``(wall, cpu)`` seconds, each the minimum over ``reps`` calls. On a shared box the
-    process CPU time is the better estimate of the unloaded wall time (single-threaded code)."""
-    best, best_cpu = np.inf, np.inf
+def _min_time(fn: Callable[[], object], reps: int) -> tuple[float, float, float]:
+    """``(wall, cpu, median wall)`` seconds: the minima over ``reps`` calls and the median wall
+    time. On a shared box the minimum (and the process CPU time) is the best estimate of the
+    unloaded time (single-threaded code)."""
+    walls, best_cpu = [], np.inf
     for _ in range(max(1, reps)):
         t, c = time.perf_counter(), time.process_time()
         fn()
         best_cpu = min(best_cpu, time.process_time() - c)
-        best = min(best, time.perf_counter() - t)
-    return float(best), float(best_cpu)
+        walls.append(time.perf_counter() - t)
+    return float(np.min(walls)), float(best_cpu), float(np.median(walls))
 
 
 # -- static: error and time on the shared maps -----------------------------------------------
@@ -101,7 +109,9 @@ def static_bench(maps: dict[str, np.ndarray], methods: list[str], counts: tuple[
                 rows.append({"map": map_name, "method": method, "count": n, "lights": len(ls),
                              "build_ms": 1e3 * t_build[0], "update_ms": 1e3 * t_update[0],
                              "build_cpu_ms": 1e3 * t_build[1],
-                             "update_cpu_ms": 1e3 * t_update[1], **ref.errors(ls)})
+                             "update_cpu_ms": 1e3 * t_update[1],
+                             "build_median_ms": 1e3 * t_build[2],
+                             "update_median_ms": 1e3 * t_update[2], **ref.errors(ls)})
     return rows
 
 
@@ -114,7 +124,7 @@ def medians(rows: list[dict[str, Any]]) -> dict[str, dict[int, dict[str, float]]
             sel = [r for r in rows if r["method"] == method and r["count"] == n]
             per_n[n] = {k: float(np.median([r[k] for r in sel]))
                         for k in ("build_ms", "update_ms", "build_cpu_ms", "update_cpu_ms",
-                                  "lights", *KINDS)}
+                                  "build_median_ms", "update_median_ms", "lights", *KINDS)}
     return out
 
 
@@ -140,11 +150,116 @@ def nikodym_table(img: np.ndarray, methods: list[str], reps: int) -> dict[str, A
                 s.reset()
                 s.sample(img, n)
 
-            times.append([1e3 * x for x in _min_time(build, reps)])
+            times.append([1e3 * x for x in _min_time(build, reps)[:2]])
         ours[method] = times
     return {"counts": list(NIKODYM_COUNTS), "map": "360x90 (top half of 360x180 lebombo)",
             "ours_ms_is": "[wall, cpu] min over repetitions",
             "nikodym_2013_n900_ms": NIKODYM_N900_MS, "ours_ms": ours}
+
+
+# -- Q2-Tree: incremental update against full build, end to end ------------------------------
+INCREMENTAL_KINDS = ("local", "gain", "noise")
+
+
+def change_sequence(img: np.ndarray, kind: str, frames: int, seed: int = 0) -> list[np.ndarray]:
+    """Frames of a slowly changing stream: ``local`` (a lamp-sized block, 1/8 of the height
+    square, brightens 2% a frame and moves 1/256 of the width: the rest of the map is
+    unchanged, as in a still room or the simulator), ``gain`` (every pixel x 1.002 every other
+    frame) or ``noise`` (1% multiplicative noise on every pixel, like a camera). ``img`` is an
+    (H, W, 3) equirect map or a (P, 3) NESTED one."""
+    h, w = img.shape[:2]
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(frames):
+        if kind == "local" and img.ndim == 2:  # NESTED map: a quad of 1/768 of the sphere
+            f = img.copy()
+            b = max(1, h // 768)
+            a = h // 5 + k * max(1, b // 4)
+            f[a:a + b] *= np.float32(1.0 + 0.02 * k)
+        elif kind == "local":
+            f = img.copy()
+            b, r0, c0 = max(1, h // 8), h // 5, w // 3 + k * max(1, w // 256)
+            f[r0:r0 + b, c0:c0 + b] *= np.float32(1.0 + 0.02 * k)
+        elif kind == "gain":
+            f = img * np.float32(1.0 + 0.002 * (k % 2))
+        else:
+            f = img * (1.0 + 0.01 * rng.standard_normal((*img.shape[:-1], 1))).astype(np.float32)
+        out.append(np.ascontiguousarray(f, np.float32))
+    return out
+
+
+def _q2_times(sample: Callable[[Any, np.ndarray], Any], frames: list[np.ndarray], reps: int
+              ) -> dict[str, float]:
+    """Full build (``reset`` then the frame) and update (the frame after its predecessor) of a
+    Q2TreeSampler over ``frames``: min and median wall ms over frames x reps, and the tree's
+    own time (``stats["tree_s"]``, us) for both."""
+    from device.sampling.q2tree import Q2TreeSampler
+
+    s = Q2TreeSampler()
+    sample(s, frames[0])  # warm up (JIT, tables)
+    full, tfull, upd, tupd, changed = [], [], [], [], []
+    for _ in range(max(1, reps)):
+        for f in frames:
+            s.reset()
+            t = time.perf_counter()
+            sample(s, f)
+            full.append(time.perf_counter() - t)
+            tfull.append(s.stats["tree_s"])
+        s.reset()
+        sample(s, frames[0])
+        for f in frames[1:]:
+            t = time.perf_counter()
+            sample(s, f)
+            upd.append(time.perf_counter() - t)
+            tupd.append(s.stats["tree_s"])
+            changed.append(s.stats["changed_quads"])
+    out = {"full_ms": 1e3 * min(full), "full_median_ms": 1e3 * float(np.median(full)),
+           "update_ms": 1e3 * min(upd), "update_median_ms": 1e3 * float(np.median(upd)),
+           "tree_full_us": 1e6 * min(tfull), "tree_update_us": 1e6 * min(tupd),
+           "changed_quads_median": float(np.median(changed))}
+    out["ratio"] = out["update_ms"] / out["full_ms"]
+    out["ratio_median"] = out["update_median_ms"] / out["full_median_ms"]
+    out["tree_ratio"] = out["tree_update_us"] / out["tree_full_us"]
+    return out
+
+
+def _call(s: Any, f: np.ndarray, n: int) -> Any:
+    """``sample`` for an equirect frame, ``sample_healpix`` (nside 64) for a NESTED one."""
+    return s.sample_healpix(f, 64, n) if f.ndim == 2 else s.sample(f, n)
+
+
+def incremental_bench(maps: dict[str, np.ndarray], counts: tuple[int, ...], frames: int,
+                      reps: int) -> dict[str, Any]:
+    """Q2-Tree update / full build, end to end (``sample()``, map -> pyramid -> tree -> lights)
+    and tree only, on the 1k maps and on the device's inputs: the pipeline's 512 x 256 equirect
+    (lower half black, ``sample``) and its NESTED nside-64 map (``sample_healpix``)."""
+    import cv2
+
+    from device.healpix import equirect_to_healpix
+
+    rows = []
+    for name, img in maps.items():
+        small = cv2.resize(img, (512, 256), interpolation=cv2.INTER_AREA).astype(np.float32)
+        small[128:] = 0.0
+        hp = equirect_to_healpix(small, 64).astype(np.float32)
+        inputs = {"1k equirect": img, "device 512x256 equirect": small,
+                  "device nside-64 healpix": hp}
+        for path, base in inputs.items():
+            for kind in INCREMENTAL_KINDS:
+                seq = change_sequence(base, kind, frames)
+                for n in counts:
+                    t = _q2_times(partial(_call, n=n), seq, reps)
+                    rows.append({"map": name, "input": path, "sequence": kind, "count": n, **t})
+    summary: dict[str, Any] = {}
+    for r in rows:
+        key = f"{r['input']} / {r['sequence']} / N={r['count']}"
+        summary.setdefault(key, {"ratio": [], "ratio_median": [], "tree_ratio": [],
+                                 "full_ms": [], "update_ms": []})
+        for k in summary[key]:
+            summary[key][k].append(r[k])
+    med = {k: {m: float(np.median(v)) for m, v in d.items()} for k, d in summary.items()}
+    return {"rows": rows, "medians_over_maps": med,
+            "note": "ratio = min update / min full build, wall; tree_ratio from stats['tree_s']"}
 
 
 # -- temporal ---------------------------------------------------------------------------------
@@ -342,6 +457,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     counts = QUICK_COUNTS if quick else COUNTS
     reps = 1 if quick else 5
     t0 = time.perf_counter()
+    load_start = os.getloadavg()
     rows = static_bench(maps, methods, counts, reps)
     med = medians(rows)
     nik = nikodym_table(nikodym_map(shared), methods, reps)
@@ -349,6 +465,9 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
               {s: 90 for s in SCENARIOS} | {"switch": 240})
     temporal = temporal_bench(methods, 256, frames)
     filters = {} if quick else filter_bench(256, {s: 60 for s in SCENARIOS} | {"switch": 240})
+    incremental = incremental_bench(
+        dict(list(maps.items())[:2]) if quick else maps, (256,) if quick else (256, 1000),
+        6 if quick else 12, 1 if quick else 3)
     plots = _plots(out_dir, med, temporal)
     summary = {
         "methods": methods,
@@ -363,11 +482,19 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         "nikodym_360x90_ms": nik["ours_ms"],
         "flicker": {s: {m: v["flicker"] for m, v in temporal[s].items()} for s in temporal},
         "switch_lag_max_frames": {m: v["lag_max"] for m, v in temporal["switch"].items()},
+        "median_build_min_ms": {m: {n: v["build_ms"] for n, v in per.items()}
+                                for m, per in med.items()},
+        "median_build_median_ms": {m: {n: v["build_median_ms"] for n, v in per.items()}
+                                   for m, per in med.items()},
+        "q2tree_incremental_at_256": {k: v for k, v in incremental["medians_over_maps"].items()
+                                      if k.endswith("N=256")},
+        "load_average": {"start": list(load_start), "end": list(os.getloadavg())},
         "wall_s": round(time.perf_counter() - t0, 1),
     }
     result = {"summary": summary, "static": rows,
               "medians": {m: {str(n): v for n, v in per.items()} for m, per in med.items()},
               "nikodym_table": nik, "temporal": temporal, "hemigon_filters": filters,
+              "q2tree_incremental": incremental,
               "frames": frames, "fps": FPS, "plots": plots, "quick": quick}
     (out_dir / "samplers.json").write_text(json.dumps(result, indent=1))
     return result

@@ -304,3 +304,90 @@ def test_map_size_change_rebuilds(studio: np.ndarray) -> None:
     np.testing.assert_allclose(ls.total, equirect_integral(small), rtol=1e-9)
     s.sample(studio, 300)
     assert s.stats["mode"] == "full"
+
+
+# -- the incremental pyramid: only changed runs are summed again, and the result is exact -------
+def _equirect_frames(rng: np.random.Generator, steps: int, height: int = 48
+                     ) -> list[tuple[np.ndarray, int]]:
+    """A sequence of (frame, count): sparse pixel changes, NaN/inf/negative values appearing
+    and healing, a brightening block, a global gain, a new frame, the same frame again."""
+    frame = rng.lognormal(0.0, 1.5, (height, 2 * height, 3)).astype(np.float32)
+    frame[rng.integers(0, height), rng.integers(0, 2 * height)] = 1e9
+    out = []
+    for _ in range(steps):
+        kind = rng.integers(0, 6)
+        frame = frame.copy()
+        if kind == 0:  # a few pixels
+            r, c = rng.integers(0, height, 5), rng.integers(0, 2 * height, 5)
+            frame[r, c] *= np.float32(rng.lognormal(0.0, 1.0))
+        elif kind == 1:  # old bad values heal, new ones appear
+            frame[~np.isfinite(frame) | (frame < 0)] = 0.5
+            r, c = rng.integers(0, height, 4), rng.integers(0, 2 * height, 4)
+            frame[r, c, rng.integers(0, 3, 4)] = rng.choice([np.nan, np.inf, -np.inf, -2.0], 4)
+        elif kind == 2:  # a lamp region brightens
+            r, c = rng.integers(0, height - 8), rng.integers(0, 2 * height - 8)
+            frame[r:r + 8, c:c + 8] *= np.float32(1.5)
+        elif kind == 3:  # global gain: every pixel changes
+            frame *= np.float32(1.01)
+        elif kind == 4:  # a completely new frame
+            frame[:] = rng.lognormal(0.0, 1.5, frame.shape)
+        out.append((frame, int(rng.choice([16, 64, 100, 256, 257, 700]))))
+    return out
+
+
+@pytest.mark.parametrize("placement", ["centroid", "jitter"])
+def test_incremental_pyramid_equals_fresh_build_on_equirect_sequences(placement: str) -> None:
+    rng = np.random.default_rng(42)
+    modes = []
+    for _ in range(4):
+        inc = Q2TreeSampler(nside_max=32, placement=placement, hysteresis=0.0)
+        live = np.zeros((48, 96, 3), np.float32)  # one array modified in place frame to frame
+        for frame, count in _equirect_frames(rng, 14):
+            live[:] = frame
+            got = inc.sample(live, count)
+            modes.append((inc.stats["pyramid_mode"], inc.stats["changed_quads"]))
+            want = Q2TreeSampler(nside_max=32, placement=placement).sample(frame.copy(), count)
+            _assert_same_lights(got, want)
+            clean = np.where(np.isfinite(frame) & (frame > 0), frame, 0)
+            np.testing.assert_allclose(got.total, equirect_integral(clean), rtol=1e-9)
+    inc_modes = [n for m, n in modes if m == "incremental"]
+    assert len(inc_modes) > 10
+    assert min(inc_modes) == 0  # an unchanged frame re-sums nothing
+    assert any(0 < n < 50 for n in inc_modes)  # a sparse change re-sums a few quads
+
+
+def test_incremental_pyramid_on_healpix_sequences() -> None:
+    rng = np.random.default_rng(8)
+    inc = Q2TreeSampler(hysteresis=0.0)
+    m = _random_map(rng)
+    live = m.copy()
+    partial = 0
+    for _step in range(30):
+        choice = rng.integers(0, 4)
+        if choice == 0:
+            live[rng.integers(0, len(live), 3)] *= np.float32(3.0)
+        elif choice == 1:
+            live[rng.integers(0, len(live), 2), rng.integers(0, 3)] = np.nan
+        elif choice == 2:
+            live[~np.isfinite(live)] = 1.0
+        count = int(rng.choice([30, 120, 400]))
+        got = inc.sample_healpix(live, NSIDE, count)
+        want = Q2TreeSampler().sample_healpix(live.copy(), NSIDE, count)
+        _assert_same_lights(got, want)
+        partial += inc.stats["pyramid_mode"] == "incremental" and inc.stats["changed_quads"] > 0
+    assert partial > 5
+
+
+def test_local_change_resums_only_its_quads(studio: np.ndarray) -> None:
+    s = Q2TreeSampler()
+    s.sample(studio, 256)
+    total = s.stats["changed_quads"]
+    frame = studio.copy()
+    frame[200:210, 500:520] *= np.float32(2.0)
+    ls = s.sample(frame, 256)
+    assert s.stats["pyramid_mode"] == "incremental"
+    assert 0 < s.stats["changed_quads"] <= 8 < total
+    np.testing.assert_allclose(ls.total, equirect_integral(frame), rtol=1e-9)
+    s.reset()
+    s.sample(frame, 256)
+    assert s.stats["pyramid_mode"] == "full"

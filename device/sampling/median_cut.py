@@ -23,6 +23,7 @@ Debevec, "A median cut algorithm for light probe sampling", SIGGRAPH 2005 poster
 
 from __future__ import annotations
 
+import functools
 import heapq
 
 import numpy as np
@@ -30,8 +31,9 @@ from numba import njit
 
 from device.sphere import equirect_row_solid_angle
 
+from ._pixels import clean_invalid
 from .base import LightSet
-from .pharr import empty_lightset, prepare_density
+from .pharr import empty_lightset
 
 __all__ = ["MedianCutSampler", "median_cut_regions"]
 
@@ -65,12 +67,38 @@ def _best_split(sat, r0, r1, c0, c1, along_cols):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True)
-def median_cut_regions(energy, sin_theta, count):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Rectangles (K, 4) int64 ``[r0, r1, c0, c1)`` and their energies from ``energy`` (H, W).
+def _prepare_sat(img, omega):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
+    """One pass over the map: summed-area table (H + 1, W + 1) of luminance x solid angle
+    (Crow 1984), the per-channel integral and the invalid-value counts (read as 0, the rule of
+    ``device.sampling._pixels``)."""
+    h, w = img.shape[0], img.shape[1]
+    sat = np.empty((h + 1, w + 1))
+    sat[0, :] = 0.0
+    total = np.zeros(3)
+    bad = np.zeros(2, np.int64)
+    for r in range(h):
+        om = omega[r]
+        sr = sg = sb = acc = 0.0
+        sat[r + 1, 0] = 0.0
+        for c in range(w):
+            vr = np.float64(img[r, c, 0])
+            vg = np.float64(img[r, c, 1])
+            vb = np.float64(img[r, c, 2])
+            if not (vr >= 0.0 and vg >= 0.0 and vb >= 0.0 and vr + vg + vb < np.inf):
+                vr, vg, vb = clean_invalid(vr, vg, vb, bad)
+            sr += vr
+            sg += vg
+            sb += vb
+            acc += (0.2126 * vr + 0.7152 * vg + 0.0722 * vb) * om
+            sat[r + 1, c + 1] = sat[r, c + 1] + acc
+        total[0] += sr * om
+        total[1] += sg * om
+        total[2] += sb * om
+    return sat, total, bad
 
-    ``sin_theta`` (H,) scales widths (cos latitude). Splits the most energetic splittable
-    region until ``count`` regions exist or none can be split.
-    """
+
+@njit(cache=True)
+def _energy_sat(energy):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
     h, w = energy.shape
     sat = np.zeros((h + 1, w + 1))
     for r in range(h):  # Build the summed-area table
@@ -78,6 +106,13 @@ def median_cut_regions(energy, sin_theta, count):  # type: ignore[no-untyped-def
         for c in range(w):
             acc += energy[r, c]
             sat[r + 1, c + 1] = sat[r, c + 1] + acc
+    return sat
+
+
+@njit(cache=True)
+def _regions_from_sat(sat, sin_theta, count):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Median cut on a summed-area table (see :func:`median_cut_regions`)."""
+    h, w = sat.shape[0] - 1, sat.shape[1] - 1
     rects = np.zeros((count, 4), np.int64)
     e = np.zeros(count)
     rects[0] = (0, h, 0, w)
@@ -105,28 +140,95 @@ def median_cut_regions(energy, sin_theta, count):  # type: ignore[no-untyped-def
     return rects[:k], e[:k]
 
 
+def median_cut_regions(energy: np.ndarray, sin_theta: np.ndarray, count: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Rectangles (K, 4) int64 ``[r0, r1, c0, c1)`` and their energies from ``energy`` (H, W).
+
+    ``sin_theta`` (H,) scales widths (cos latitude). Splits the most energetic splittable
+    region until ``count`` regions exist or none can be split.
+    """
+    sat = _energy_sat(np.ascontiguousarray(energy, np.float64))
+    rects, e = _regions_from_sat(sat, np.asarray(sin_theta, np.float64), int(count))
+    return rects, e
+
+
+@njit(cache=True, inline="always")
+def _segment(x, xb, sin_p, cos_p):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
+    """Raw sums over one row segment (``x`` flat rgb float32, ``xb`` its bits): r, g, b, Y,
+    Y sin phi, Y cos phi, and whether a sign bit was set (a negative value)."""
+    s0 = s1 = s2 = yy = ys = yc = 0.0
+    sign = np.uint32(0)
+    for i in range(len(sin_p)):
+        sign |= xb[3 * i] | xb[3 * i + 1] | xb[3 * i + 2]
+        vr = np.float64(x[3 * i])
+        vg = np.float64(x[3 * i + 1])
+        vb = np.float64(x[3 * i + 2])
+        s0 += vr
+        s1 += vg
+        s2 += vb
+        y = 0.2126 * vr + 0.7152 * vg + 0.0722 * vb
+        yy += y
+        ys += y * sin_p[i]
+        yc += y * cos_p[i]
+    return s0, s1, s2, yy, ys, yc, sign >= np.uint32(0x80000000)
+
+
 @njit(cache=True)
-def _region_lights(img, energy, rects, omega, sin_t, cos_t, sin_p, cos_p):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Per region: summed rgb x solid angle, energy-weighted direction sum, solid angle."""
+def _segment_clean(img, r, c0, c1, sin_p, cos_p):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Slow path of :func:`_segment` for a segment holding NaN/inf/negative values (read as 0);
+    whole arrays and indices, so the hot loop passes no slices to a call."""
+    s0 = s1 = s2 = yy = ys = yc = 0.0
+    bad = np.zeros(2, np.int64)
+    for c in range(c0, c1):
+        vr, vg, vb = clean_invalid(np.float64(img[r, c, 0]), np.float64(img[r, c, 1]),
+                                   np.float64(img[r, c, 2]), bad)
+        s0 += vr
+        s1 += vg
+        s2 += vb
+        y = 0.2126 * vr + 0.7152 * vg + 0.0722 * vb
+        yy += y
+        ys += y * sin_p[c]
+        yc += y * cos_p[c]
+    return s0, s1, s2, yy, ys, yc
+
+
+@njit(cache=True)
+def _region_lights(img, rects, omega, sin_t, cos_t, sin_p, cos_p):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Per region: summed rgb x solid angle, energy-weighted direction sum, solid angle.
+
+    Row by row: the raw sums of a row segment (rgb, Y, Y sin phi, Y cos phi) are scaled once by
+    the row's solid angle and sin/cos theta (d = (sin t sin p, cos t, -sin t cos p)). A segment
+    with NaN/inf/negative values (caught by its sum and its sign bits) is summed again with
+    those read as 0."""
     k = rects.shape[0]
+    w = img.shape[1]
+    flat = img.reshape(-1)
+    bits = flat.view(np.uint32)
     rgb = np.zeros((k, 3))
     dsum = np.zeros((k, 3))
     solid = np.zeros(k)
     for i in range(k):
         r0, r1, c0, c1 = rects[i]
+        a0 = a1 = a2 = d0 = d1 = d2 = om_sum = 0.0
+        sp = sin_p[c0:c1]
+        cp = cos_p[c0:c1]
         for r in range(r0, r1):
+            lo, hi = 3 * (r * w + c0), 3 * (r * w + c1)
+            s0, s1, s2, yy, ys, yc, neg = _segment(flat[lo:hi], bits[lo:hi], sp, cp)
+            if neg or not s0 + s1 + s2 < np.inf:
+                s0, s1, s2, yy, ys, yc = _segment_clean(img, r, c0, c1, sin_p, cos_p)
             om = omega[r]
-            solid[i] += om * (c1 - c0)
-            for c in range(c0, c1):
-                for ch in range(3):
-                    v = np.float64(img[r, c, ch])
-                    if np.isfinite(v) and v > 0.0:  # NaN/inf/negative read as 0
-                        rgb[i, ch] += v * om
-                en = energy[r, c]
-                dsum[i, 0] += en * sin_t[r] * sin_p[c]
-                dsum[i, 1] += en * cos_t[r]
-                dsum[i, 2] -= en * sin_t[r] * cos_p[c]
-        if dsum[i, 0] == 0.0 and dsum[i, 1] == 0.0 and dsum[i, 2] == 0.0:
+            om_sum += om * (c1 - c0)
+            a0 += s0 * om
+            a1 += s1 * om
+            a2 += s2 * om
+            d0 += ys * (om * sin_t[r])
+            d1 += yy * (om * cos_t[r])
+            d2 -= yc * (om * sin_t[r])
+        rgb[i, 0], rgb[i, 1], rgb[i, 2] = a0, a1, a2
+        dsum[i, 0], dsum[i, 1], dsum[i, 2] = d0, d1, d2
+        solid[i] = om_sum
+        if d0 == 0.0 and d1 == 0.0 and d2 == 0.0:
             rm, cm = (r0 + r1) // 2, (c0 + c1) // 2  # no energy: geometric centre
             dsum[i, 0] = sin_t[rm] * sin_p[cm]
             dsum[i, 1] = cos_t[rm]
@@ -146,19 +248,30 @@ class MedianCutSampler:
         """At most ``count`` lights (see the module docstring)."""
         if count < 1:
             raise ValueError(f"count must be >= 1, got {count}")
-        energy, _, total, flags = prepare_density(equirect)
-        extra: dict[str, object] = {"sanitized": flags} if any(flags.values()) else {}
-        h, w = energy.shape
+        img = np.asarray(equirect)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"expected an (H, W, 3) radiance map, got shape {img.shape}")
+        img = np.ascontiguousarray(img, np.float32)
+        h, w = img.shape[:2]
         omega = equirect_row_solid_angle(h, w)
+        sat, total, bad = _prepare_sat(img, omega)
+        flags = {"nonfinite": int(bad[0]), "negative": int(bad[1])}
+        extra: dict[str, object] = {"sanitized": flags} if any(flags.values()) else {}
         if not np.any(total > 0):
             return empty_lightset(self.name, extra)
-        theta = np.pi * (np.arange(h) + 0.5) / h
-        phi = 2 * np.pi * (np.arange(w) + 0.5) / w
-        rects, e = median_cut_regions(energy, np.sin(theta), int(count))
+        sin_t, cos_t, sin_p, cos_p = _trig(h, w)
+        rects, e = _regions_from_sat(sat, sin_t, int(count))
         rects = rects[e > 0]
-        rgb, dsum, solid = _region_lights(np.ascontiguousarray(equirect, np.float32), energy, rects, omega, np.sin(theta),
-                                          np.cos(theta), np.sin(phi), np.cos(phi))
+        rgb, dsum, solid = _region_lights(img, rects, omega, sin_t, cos_t, sin_p, cos_p)
         dirs = dsum / np.linalg.norm(dsum, axis=1, keepdims=True)
         extra["regions"] = len(rects)
         return LightSet(dirs, rgb, solid, np.arange(len(rects), dtype=np.int64),
                         method=self.name, extra=extra)
+
+
+@functools.lru_cache(maxsize=8)
+def _trig(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """sin/cos of the pixel-centre polar angle (per row) and azimuth (per column)."""
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2 * np.pi * (np.arange(w) + 0.5) / w
+    return np.sin(theta), np.cos(theta), np.sin(phi), np.cos(phi)

@@ -22,7 +22,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["bin_equirect", "build_tree", "level_scale", "sum_levels", "update_tree"]
+from ._binning import fill_children
+
+__all__ = ["build_tree", "leaf_arrays", "level_scale", "regroup_worst", "update_tree"]
 
 NEG_INF = -np.inf
 
@@ -117,8 +119,9 @@ def _heapify(keys: np.ndarray, ids: np.ndarray, size: int) -> None:
 
 # -- tree edits shared by build and update -------------------------------------------------------
 @njit(cache=True)
-def _children_keys(lum: np.ndarray, u: int, level: int, scale: np.ndarray, a: float,
-                   eff: np.ndarray) -> None:
+def _children_keys(src: tuple, lum: np.ndarray, u: int, level: int,  # type: ignore[type-arg]
+                   scale: np.ndarray, a: float, eff: np.ndarray) -> None:
+    fill_children(src, u, level)
     for c in range(4 * u, 4 * u + 4):
         p = _raw_importance(lum, c, level + 1, scale, a)
         eff[c] = min(p, eff[u])
@@ -138,13 +141,15 @@ def _is_leaf(in_s: np.ndarray, u: int, level: int, max_level: int) -> bool:
 
 
 @njit(cache=True)
-def build_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
-               n_splits: int, in_s: np.ndarray, eff: np.ndarray) -> np.ndarray:
+def build_tree(src: tuple, lum: np.ndarray, scale: np.ndarray,  # type: ignore[type-arg]
+               a: float, max_level: int, n_splits: int, in_s: np.ndarray, eff: np.ndarray
+               ) -> np.ndarray:
     """Greedy build (Nikodym et al. 2013, Algorithm 1): split the best leaf ``n_splits`` times.
 
-    ``in_s`` must be all zero on entry; on return it flags the split (interior) nodes and
-    ``eff`` holds the keys of the 12 roots, of every split node and of their children.
-    Returns the split nodes' ids in split order.
+    ``src`` sums nodes finer than the per-frame pyramid on demand
+    (:func:`._binning.fill_children`). ``in_s`` must be all zero on entry; on return it flags
+    the split (interior) nodes and ``eff`` holds the keys of the 12 roots, of every split
+    node and of their children. Returns the split nodes' ids in split order.
     """
     keys = np.empty(12 + 4 * n_splits, np.float64)
     ids = np.empty(12 + 4 * n_splits, np.int64)
@@ -164,7 +169,7 @@ def build_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
         in_s[u] = 1
         out[n] = u
         n += 1
-        _children_keys(lum, u, level, scale, a, eff)
+        _children_keys(src, lum, u, level, scale, a, eff)
         if level + 1 < max_level:
             for c in range(4 * u, 4 * u + 4):
                 keys, ids, size = _heap_push(keys, ids, size, eff[c], c)
@@ -172,8 +177,8 @@ def build_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
 
 
 @njit(cache=True)
-def _candidates(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
-                split: np.ndarray, in_s: np.ndarray, eff: np.ndarray
+def _candidates(src: tuple, lum: np.ndarray, scale: np.ndarray,  # type: ignore[type-arg]
+                a: float, max_level: int, split: np.ndarray, in_s: np.ndarray, eff: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int]:
     """Re-evaluate the keys of the roots, the split nodes (sorted: parents first) and their
     children in one pass, collecting the splittable leaves (lk, li, ls: max-heap entries) and
@@ -197,6 +202,7 @@ def _candidates(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
         if u >= 16:
             eff[u] = min(_raw_importance(lum, u, level, scale, a), eff[u >> 2])
         e_u = eff[u]
+        fill_children(src, u, level)
         mergeable = True
         for c in range(4 * u, 4 * u + 4):
             eff[c] = min(_raw_importance(lum, c, level + 1, scale, a), e_u)
@@ -251,9 +257,9 @@ def _collect(split: np.ndarray, added: np.ndarray, n_added: int, in_s: np.ndarra
 
 
 @njit(cache=True)
-def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
-                split: np.ndarray, n_splits: int, hysteresis: float, in_s: np.ndarray,
-                eff: np.ndarray) -> tuple[np.ndarray, int, int]:
+def update_tree(src: tuple, lum: np.ndarray, scale: np.ndarray,  # type: ignore[type-arg]
+                a: float, max_level: int, split: np.ndarray, n_splits: int, hysteresis: float,
+                in_s: np.ndarray, eff: np.ndarray) -> tuple[np.ndarray, int, int]:
     """Incremental split-merge from the previous frame's tree to ``n_splits`` splits.
 
     ``split`` holds the previous split nodes sorted by id and ``in_s`` flags them. The keys are
@@ -267,7 +273,7 @@ def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
 
     Returns (split ids sorted, number of splits done, number of merges done).
     """
-    lk, li, ls, mk, mi, ms = _candidates(lum, scale, a, max_level, split, in_s, eff)
+    lk, li, ls, mk, mi, ms = _candidates(src, lum, scale, a, max_level, split, in_s, eff)
     count = len(split)
     if count == n_splits and ls > 0 and ms > 0:
         # Common case of a slowly changing map: no swap pays, nothing to sort
@@ -305,7 +311,7 @@ def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
                 added = np.concatenate((added, np.empty(len(added), np.int64)))
             added[n_added] = u
             n_added += 1
-            _children_keys(lum, u, level, scale, a, eff)
+            _children_keys(src, lum, u, level, scale, a, eff)
             if level + 1 < max_level:
                 for c in range(4 * u, 4 * u + 4):
                     lk, li, ls = _heap_push(lk, li, ls, eff[c], c)
@@ -325,94 +331,111 @@ def update_tree(lum: np.ndarray, scale: np.ndarray, a: float, max_level: int,
     return _collect(split, added, n_added, in_s, count), n_split_ops, n_merge_ops
 
 
-# -- the per-frame pyramid of node sums ----------------------------------------------------------
 @njit(cache=True)
-def bin_equirect(flat: np.ndarray, order: np.ndarray, present: np.ndarray, starts: np.ndarray,
-                 omega: np.ndarray, dirs: np.ndarray, weights: np.ndarray, moments: bool,
-                 offset: int, n_fine: int, rgb: np.ndarray, lum: np.ndarray,
-                 moment: np.ndarray) -> None:
-    """Finest-level node sums from equirect pixels grouped by the HEALPix pixel holding their
-    centre: ``order`` lists the (H*W) pixels sorted by that pixel, run k (from ``starts[k]``)
-    belongs to node ``offset + present[k]``; ``omega`` / ``dirs`` are the sorted pixels' exact
-    solid angles and centre directions. Each of the ``n_fine`` finest nodes gets radiance x
-    solid angle (rgb, luminance) and, if ``moments``, luminance x direction; 0 if no pixel."""
-    n = len(present)
-    total = len(order)
-    gap = 0  # next finest node not yet written: zero the nodes no pixel falls into
-    for k in range(n + 1):
-        stop = present[k] if k < n else n_fine
-        for g in range(offset + gap, offset + stop):
-            rgb[g, 0] = 0.0
-            rgb[g, 1] = 0.0
-            rgb[g, 2] = 0.0
-            lum[g] = 0.0
+def leaf_arrays(split: np.ndarray, in_s: np.ndarray, rgb: np.ndarray, lum: np.ndarray,
+                moment: np.ndarray, moments: bool, level_omega: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The leaves of the tree with split nodes ``split`` (sorted), in id order: (ids, rgb,
+    luminance, solid angle, direction = normalised first moment (the luminance-weighted
+    centroid) if ``moments``, and a flag for leaves without one: no power, or no moments)."""
+    n = 12 + 3 * len(split)
+    ids = np.empty(n, np.int64)
+    out_rgb = np.empty((n, 3))
+    out_lum = np.empty(n)
+    omega = np.empty(n)
+    dirs = np.zeros((n, 3))
+    missing = np.zeros(n, np.bool_)
+    k = 0
+    for j in range(-12, len(split)):
+        # roots (ids 4..15) first, then the children of each split node (sorted parents)
+        lo = j + 16 if j < 0 else 4 * split[j]
+        hi = lo + 1 if j < 0 else lo + 4
+        for u in range(lo, hi):
+            if in_s[u]:
+                continue
+            ids[k] = u
+            out_rgb[k, 0], out_rgb[k, 1], out_rgb[k, 2] = rgb[u, 0], rgb[u, 1], rgb[u, 2]
+            out_lum[k] = lum[u]
+            omega[k] = level_omega[_level(u)]
+            norm = 0.0
             if moments:
-                moment[g, 0] = 0.0
-                moment[g, 1] = 0.0
-                moment[g, 2] = 0.0
-        gap = stop + 1
-        if k == n:
+                norm = np.sqrt(moment[u, 0] ** 2 + moment[u, 1] ** 2 + moment[u, 2] ** 2)
+            if norm > 0.0:
+                dirs[k, 0] = moment[u, 0] / norm
+                dirs[k, 1] = moment[u, 1] / norm
+                dirs[k, 2] = moment[u, 2] / norm
+            else:
+                missing[k] = True
+            k += 1
+    return ids[:k], out_rgb[:k], out_lum[:k], omega[:k], dirs[:k], missing[:k]
+
+
+@njit(cache=True)
+def regroup_worst(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, leaves: np.ndarray,
+                  rgb: np.ndarray, lum: np.ndarray, omega: np.ndarray, dirs: np.ndarray,
+                  excess: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact light count when the leaves exceed it by ``excess`` in {1, 2}: the children of the
+    worst mergeable parent (the node a merge would take first: lowest key, ties to the larger
+    id) keep their 3 - excess best as lights (highest key, ties to the smaller id) and the
+    other excess + 1 become one light with the parent's id: power and solid angle summed,
+    direction the luminance-weighted mean of theirs (equal weights if dark), normalised.
+    Returns (ids, rgb, solid angle, directions), sorted by id."""
+    worst = -1
+    for j in range(len(split)):
+        u = split[j]
+        if in_s[4 * u] or in_s[4 * u + 1] or in_s[4 * u + 2] or in_s[4 * u + 3]:
+            continue
+        if worst < 0 or eff[u] < eff[worst] or (eff[u] == eff[worst] and u > worst):
+            worst = u
+    kids = np.arange(4 * worst, 4 * worst + 4)
+    for a in range(1, 4):  # insertion sort, best first
+        c = kids[a]
+        b = a - 1
+        while b >= 0 and (eff[kids[b]] < eff[c] or (eff[kids[b]] == eff[c] and kids[b] > c)):
+            kids[b + 1] = kids[b]
+            b -= 1
+        kids[b + 1] = c
+    merged = np.sort(kids[3 - excess:])
+    pos = np.searchsorted(leaves, merged)
+    wsum = 0.0
+    for p in pos:
+        wsum += lum[p]
+    g_rgb = np.zeros(3)
+    g_dir = np.zeros(3)
+    g_omega = 0.0
+    for p in pos:
+        w = lum[p] if wsum > 0.0 else 1.0
+        for ch in range(3):
+            g_rgb[ch] += rgb[p, ch]
+            g_dir[ch] += w * dirs[p, ch]
+        g_omega += omega[p]
+    norm = np.sqrt(g_dir[0] ** 2 + g_dir[1] ** 2 + g_dir[2] ** 2)
+    n = len(leaves) - excess
+    ids = np.empty(n, np.int64)
+    out_rgb = np.empty((n, 3))
+    out_omega = np.empty(n)
+    out_dirs = np.empty((n, 3))
+    k = 0
+    placed = False
+    m = 0  # next merged position to skip
+    for i in range(len(leaves) + 1):
+        if not placed and (i == len(leaves) or leaves[i] > worst):
+            ids[k] = worst
+            out_rgb[k] = g_rgb
+            out_omega[k] = g_omega
+            for ch in range(3):
+                out_dirs[k, ch] = g_dir[ch] / norm if norm > 0.0 else dirs[pos[0], ch]
+            k += 1
+            placed = True
+        if i == len(leaves):
             break
-        end = starts[k + 1] if k + 1 < n else total
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        m0 = 0.0
-        m1 = 0.0
-        m2 = 0.0
-        for i in range(starts[k], end):
-            p = order[i]
-            om = omega[i]
-            p0 = flat[p, 0] * om
-            p1 = flat[p, 1] * om
-            p2 = flat[p, 2] * om
-            a0 += p0
-            a1 += p1
-            a2 += p2
-            if moments:
-                y = weights[0] * p0 + weights[1] * p1 + weights[2] * p2
-                m0 += y * dirs[i, 0]
-                m1 += y * dirs[i, 1]
-                m2 += y * dirs[i, 2]
-        j = offset + present[k]
-        rgb[j, 0] = a0
-        rgb[j, 1] = a1
-        rgb[j, 2] = a2
-        lum[j] = weights[0] * a0 + weights[1] * a1 + weights[2] * a2
-        if moments:
-            moment[j, 0] = m0
-            moment[j, 1] = m1
-            moment[j, 2] = m2
-
-
-@njit(cache=True)
-def sum_levels(arr: np.ndarray, max_level: int) -> None:
-    """Fill the coarser levels of a dense NUNIQ array (M, C): node u = sum of 4u .. 4u+3."""
-    for k in range(max_level - 1, -1, -1):
-        lo = 4 ** (k + 1)
-        for u in range(lo, 4 * lo):
-            for ch in range(arr.shape[1]):
-                arr[u, ch] = arr[4 * u, ch] + arr[4 * u + 1, ch] + arr[4 * u + 2, ch] + arr[4 * u + 3, ch]
-
-
-@njit(cache=True)
-def bin_healpix(hp: np.ndarray, omega: float, dirs: np.ndarray, weights: np.ndarray,
-                moments: bool, offset: int, rgb: np.ndarray, lum: np.ndarray,
-                moment: np.ndarray) -> None:
-    """Finest-level node sums of a NESTED radiance map at the tree's own nside: radiance x
-    ``omega`` (the pixel solid angle), its luminance and, if ``moments``, luminance x the pixel
-    centre direction ``dirs``."""
-    for i in range(hp.shape[0]):
-        j = offset + i
-        p0 = hp[i, 0] * omega
-        p1 = hp[i, 1] * omega
-        p2 = hp[i, 2] * omega
-        rgb[j, 0] = p0
-        rgb[j, 1] = p1
-        rgb[j, 2] = p2
-        y = weights[0] * p0 + weights[1] * p1 + weights[2] * p2
-        lum[j] = y
-        if moments:
-            moment[j, 0] = y * dirs[i, 0]
-            moment[j, 1] = y * dirs[i, 1]
-            moment[j, 2] = y * dirs[i, 2]
+        if m < len(pos) and pos[m] == i:
+            m += 1
+            continue
+        ids[k] = leaves[i]
+        out_rgb[k] = rgb[i]
+        out_omega[k] = omega[i]
+        out_dirs[k] = dirs[i]
+        k += 1
+    return ids, out_rgb, out_omega, out_dirs

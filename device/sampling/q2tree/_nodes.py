@@ -1,12 +1,12 @@
 """Node arithmetic of the Q2-Tree: NUNIQ ids, the power pyramid and light placement.
 
 A node at level k (nside 2^k, solid angle 4 pi / (12 4^k)) with NESTED index i has the id
-``u = 4 4^k + i`` (HEALPix NUNIQ). The pyramid is a dense array indexed by u holding, for every
-node of every level down to ``nside_max``, the node's integral of radiance x solid angle: a
-mip-map of sums, built bottom-up by adding the four children (NESTED children are 4i..4i+3).
-It gives any quad's power in O(1) like a prefix sum over the finest map, but without the
-cancellation a prefix difference suffers next to a 1e9 hot pixel (dim quads keep full relative
-precision).
+``u = 4 4^k + i`` (HEALPix NUNIQ). The pyramid is a dense array indexed by u holding a node's
+integral of radiance x solid angle: a mip-map of sums, built bottom-up by adding the four
+children (NESTED children are 4i..4i+3) above the per-frame coarse level, and summed from the
+node's own pixels below it (``._binning``). It gives any quad's power in O(1) like a prefix sum
+over the finest map, but without the cancellation a prefix difference suffers next to a 1e9 hot
+pixel (dim quads keep full relative precision).
 
 Dtype policy: sums, moments and directions float64; ids int64.
 """
@@ -18,10 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.healpix import face_xy_to_directions, nest_to_xyf, pix2vec_nest, vec2pix_nest
-from device.sphere import LUMINANCE_WEIGHTS, equirect_directions, equirect_row_solid_angle
+from device.healpix import face_xy_to_directions, nest_to_xyf
 
-from ._kernels import bin_equirect, bin_healpix, sum_levels
+from ._binning import FrameState, equirect_tables, healpix_tables
 
 __all__ = [
     "Pyramid",
@@ -32,6 +31,7 @@ __all__ = [
     "pyramid_from_equirect",
     "pyramid_from_healpix",
     "reduce_healpix",
+    "state_pyramid",
     "uniq_to_nodes",
 ]
 
@@ -54,22 +54,25 @@ def uniq_to_nodes(uniq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return level, u - (np.int64(4) << (2 * level))
 
 
+@functools.lru_cache(maxsize=32)
+def _level_solid_angles(max_level: int) -> np.ndarray:
+    dw = 4.0 * np.pi / (12.0 * 4.0 ** np.arange(max_level + 1))
+    dw.setflags(write=False)
+    return dw
+
+
 def level_solid_angles(max_level: int) -> np.ndarray:
-    """Solid angle of a node at each level 0..max_level: 4 pi / (12 4^k) (Nikodym et al. eq. 1)."""
-    return 4.0 * np.pi / (12.0 * 4.0 ** np.arange(max_level + 1))
-
-
-@functools.lru_cache(maxsize=4)
-def _pixel_directions(nside: int) -> np.ndarray:
-    d = pix2vec_nest(nside, np.arange(12 * nside * nside))
-    d.setflags(write=False)
-    return d
+    """Solid angle of a node at each level 0..max_level: 4 pi / (12 4^k) (Nikodym et al. eq. 1).
+    (Read-only, cached.)"""
+    return _level_solid_angles(int(max_level))
 
 
 @dataclass
 class Pyramid:
     """Per-node sums of one frame: ``rgb`` (M, 3) and luminance ``lum`` (M,) of radiance x
-    solid angle, and, for centroid placement, ``moment`` (M, 3) = sum of lum x direction."""
+    solid angle, and, for centroid placement, ``moment`` (M, 3) = sum of lum x direction.
+    Inside the sampler only the levels up to the per-frame coarse level and the nodes the tree
+    reached are current (see ``._binning``); the ``pyramid_from_*`` functions fill every node."""
 
     nside: int
     max_level: int
@@ -78,24 +81,10 @@ class Pyramid:
     moment: np.ndarray | None
 
 
-def _buffers(nside: int, moments: bool, reuse: Pyramid | None
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pyramid arrays (rgb, lum, moment) for ``nside``: those of ``reuse`` when it matches."""
-    if reuse is not None and reuse.nside == nside and (reuse.moment is not None) == moments:
-        return reuse.rgb, reuse.lum, reuse.moment if reuse.moment is not None else np.zeros((1, 3))
-    m = 16 * nside * nside
-    return np.zeros((m, 3)), np.zeros(m), np.zeros((m if moments else 1, 3))
-
-
-def _finish(nside: int, moments: bool, rgb: np.ndarray, lum: np.ndarray,
-            moment: np.ndarray) -> Pyramid:
-    """Fill the coarser levels from the finest one."""
-    max_level = int(np.log2(nside))
-    sum_levels(rgb, max_level)
-    sum_levels(lum.reshape(-1, 1), max_level)
-    if moments:
-        sum_levels(moment, max_level)
-    return Pyramid(nside, max_level, rgb, lum, moment if moments else None)
+def state_pyramid(state: FrameState) -> Pyramid:
+    """The pyramid view of a :class:`._binning.FrameState`'s arrays."""
+    k = state.tables.max_level
+    return Pyramid(1 << k, k, state.rgb, state.lum, state.moment if state.moments else None)
 
 
 def reduce_healpix(hp_rgb: np.ndarray, nside: int, target: int) -> np.ndarray:
@@ -109,58 +98,30 @@ def reduce_healpix(hp_rgb: np.ndarray, nside: int, target: int) -> np.ndarray:
 
 def pyramid_from_healpix(hp_rgb: np.ndarray, nside: int, moments: bool,
                          reuse: Pyramid | None = None) -> Pyramid:
-    """Pyramid of a clean (non-negative, finite) NESTED radiance map ``hp_rgb`` (12 nside^2, 3).
-
-    Each pixel contributes radiance x 4 pi / (12 nside^2) at its centre direction.
-    """
-    rgb, lum, moment = _buffers(nside, moments, reuse)
-    dirs = _pixel_directions(nside) if moments else np.zeros((1, 3))
-    bin_healpix(np.ascontiguousarray(hp_rgb), 4.0 * np.pi / (12 * nside * nside), dirs,
-                LUMINANCE_WEIGHTS, moments, 4 * nside * nside, rgb, lum, moment)
-    return _finish(nside, moments, rgb, lum, moment)
-
-
-@dataclass(frozen=True)
-class _Bins:
-    """Equirect pixels sorted by the NESTED pixel holding their centre (see ``bin_equirect``)."""
-
-    order: np.ndarray
-    present: np.ndarray
-    starts: np.ndarray
-    omega: np.ndarray
-    dirs: np.ndarray
-
-
-@functools.lru_cache(maxsize=4)
-def _equirect_bins(height: int, nside: int) -> _Bins:
-    width = 2 * height
-    dirs = equirect_directions(height, width).reshape(-1, 3)
-    hp = vec2pix_nest(nside, dirs)
-    order = np.argsort(hp, kind="stable")
-    hp_sorted = hp[order]
-    starts = np.flatnonzero(np.r_[True, hp_sorted[1:] != hp_sorted[:-1]])
-    present = hp_sorted[starts]
-    omega = np.repeat(equirect_row_solid_angle(height, width), width)[order]
-    return _Bins(order, present, starts, omega, np.ascontiguousarray(dirs[order]))
+    """Dense pyramid (every node of every level) of a NESTED radiance map ``hp_rgb``
+    (12 nside^2, 3); NaN/inf/negative read as 0. Each pixel contributes radiance x
+    4 pi / (12 nside^2) at its centre direction. ``reuse`` is accepted for compatibility."""
+    k = int(np.log2(nside))
+    state = FrameState(healpix_tables(k, k), moments)
+    flat = np.ascontiguousarray(hp_rgb)
+    state.load(flat if flat.dtype in (np.float32, np.float64) else flat.astype(np.float64))
+    return state_pyramid(state)
 
 
 def pyramid_from_equirect(clean: np.ndarray, nside: int, moments: bool,
                           reuse: Pyramid | None = None) -> Pyramid:
-    """Pyramid of a clean (H, 2H, 3) equirect map, each whole pixel binned into the HEALPix
-    pixel at ``nside`` that holds its centre.
+    """Dense pyramid of an (H, 2H, 3) equirect map, each whole pixel binned into the HEALPix
+    pixel at ``nside`` that holds its centre (NaN/inf/negative read as 0).
 
     Every quad's power is then an exact float64 sum of equirect pixels (radiance x their exact
     solid angle, CONVENTIONS.md), and centroids use the pixels' own centre directions, so the
     lights carry no resampling error. (A quad finer than the equirect pixels may receive no
-    pixel: it simply holds no power.) ``reuse``: a previous pyramid of the same nside whose
-    arrays are overwritten (saves allocating ~60 MB per frame at nside 256).
+    pixel: it simply holds no power.) ``reuse`` is accepted for compatibility.
     """
-    bins = _equirect_bins(clean.shape[0], nside)
-    rgb, lum, moment = _buffers(nside, moments, reuse)
-    bin_equirect(np.ascontiguousarray(clean, np.float32).reshape(-1, 3), bins.order,
-                 bins.present, bins.starts, bins.omega, bins.dirs, LUMINANCE_WEIGHTS, moments,
-                 4 * nside * nside, 12 * nside * nside, rgb, lum, moment)
-    return _finish(nside, moments, rgb, lum, moment)
+    k = int(np.log2(nside))
+    state = FrameState(equirect_tables(clean.shape[0], k, k), moments)
+    state.load(np.ascontiguousarray(clean, np.float32).reshape(-1, 3))
+    return state_pyramid(state)
 
 
 def _hash_unit(uniq: np.ndarray, seed: int, stream: int) -> np.ndarray:
