@@ -9,10 +9,15 @@ Scenes: ``../shared/data/meshes/spot.obj`` on a ground plane.
   luminance of the outgoing radiance towards the camera; the reference uses every ``stride``-th vertex.
 * B (speed, 20k vertices): ground 131 x 131 + spot = 20,091 vertices; spot movable with a VCF
   (paper: 32 spheres, 6 x 32^2 points; quick: 8 spheres, 6 x 8^2) and, separately, spot static.
-  Frame time for light / BRDF / view changes (static scene) and for a moving occluder, shading all
-  20,091 vertices and rendering 640 x 480 frames (ID-buffer-visible vertices; render() re-shades
-  only stale vertices: all after a light change or a move, the edited material's after a BRDF
-  edit, the non-Lambertian ones after a view change).
+  Frame time (wall min / median and process-CPU min over ``reps`` runs, 1-minute load average
+  at the time) for light / BRDF / view changes (static scene) and for a moving / rotating
+  occluder, shading all 20,091 vertices and rendering 640 x 480 frames (ID-buffer-visible
+  vertices; render() re-shades only stale parts: the static radiance after a light change, the
+  edited material's after a BRDF edit, the non-Lambertian ones after a view change, the moved
+  object's own vertices; the occlusion of vertices within reach of a moved object). Per-stage
+  times on all vertices. Errors of the same scenes against brute force (every 10th vertex), split
+  into spot / ground and, with the occluder moved, ground inside / outside the innermost VCF
+  sphere (1.2 r, where the VCF is clamped). Data sizes with the same value encoding on both sides.
 """
 
 from __future__ import annotations
@@ -52,8 +57,9 @@ def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
     from hostlink.relight.cuts import height_coded_nbytes, index_coded_nbytes
 
     lens = np.diff(offsets)
-    return (int(sum(height_coded_nbytes(int(n), kind) for n in lens)),
-            int(sum(index_coded_nbytes(int(n), kind) for n in lens)))
+    uniq, counts = np.unique(lens, return_counts=True)
+    return (int(sum(height_coded_nbytes(int(n), kind) * int(c) for n, c in zip(uniq, counts, strict=True))),
+            int(sum(index_coded_nbytes(int(n), kind) * int(c) for n, c in zip(uniq, counts, strict=True))))
 
 
 def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
@@ -77,7 +83,7 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
             t0 = time.perf_counter()
             ref = reference_radiance(rl, leaf_lights, eye, vidx)
             ref_s = time.perf_counter() - t0
-        hb, ib = _sizes(pre.svc_offsets, "f16")
+        hb, ib = _sizes(pre.svc_offsets, "u8")
         row: dict[str, Any] = {"tau": tau, "precompute_s": round(pre.seconds, 2), "vertices": len(pre.vertices),
                                "mean_svc_nodes": float(np.diff(pre.svc_offsets).mean()),
                                "svc_bytes_height": hb, "svc_bytes_index": ib, "maps": {}}
@@ -95,26 +101,93 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
     return {"stride": stride, "reference_s": round(ref_s, 2), "rows": rows}
 
 
-def _timeit(fn, reps: int) -> float:  # type: ignore[no-untyped-def]
+def _timeit(fn, reps: int) -> dict[str, float]:  # type: ignore[no-untyped-def]
+    """Wall-clock min / median and process-CPU min (ms) over ``reps`` runs after one warm-up."""
+    import os
+
     fn()
-    ts = []
+    ts, cs = [], []
     for _ in range(reps):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         ts.append(time.perf_counter() - t0)
-    return float(np.median(ts)) * 1000.0
+        cs.append(time.process_time() - c0)
+    return {"min": round(min(ts) * 1e3, 1), "median": round(float(np.median(ts)) * 1e3, 1),
+            "cpu_min": round(min(cs) * 1e3, 1), "load1": round(os.getloadavg()[0], 2)}
+
+
+def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # type: ignore[no-untyped-def]
+            groups: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Relative RMS luminance error against brute force per map, overall and per vertex group."""
+    from device.sphere import luminance
+    from hostlink.relight.reference import reference_radiance
+
+    ref = reference_radiance(rl, leaf_lights, eye, vidx)
+    out: dict[str, Any] = {}
+    for mi, name in enumerate(MAPS):
+        rl.set_leaf_light(leaf_lights[mi])
+        b, _ = rl.vertex_radiance(eye, vidx)
+        y, yr = luminance(b), luminance(ref[mi])
+        row = {"all": round(_rel_rms(y, yr), 4)}
+        row.update({g: round(_rel_rms(y[m], yr[m]), 4) for g, m in groups.items() if m.any()})
+        out[name] = row
+    return out
+
+
+def _stages(rl, eye: np.ndarray, leaf: np.ndarray, reps: int) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
+    """Per-stage times on all vertices: light tables, static (SVC) shading, occlusion, raster."""
+    from hostlink.relight.lighting import light_tables
+    from hostlink.relight.raster import rasterize
+
+    allv = np.arange(len(rl.pre.vertices))
+    pos = rl.positions()
+    wo = rl._wo(eye, pos, allv)
+    st = rl._static(allv, wo)
+    out = {"light_tables": _timeit(lambda: light_tables(leaf), reps),
+           "static_shade_all": _timeit(lambda: rl._static(allv, wo), reps),
+           "rasterize_640x480": _timeit(lambda: rasterize(rl.scene.camera, pos, rl.pre.faces, rays=False), reps)}
+    if rl.movable:
+        out["occlusion_all"] = _timeit(lambda: rl._occlusion(allv, wo, pos, st), reps)
+    return out
+
+
+def _frames(rls, rld, maps: list[np.ndarray], reps: int) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
+    """Frame times (render() at 640 x 480, shading only stale visible vertices)."""
+    from hostlink.relight.raster import rasterize
+    from hostlink.relight.scene import Camera, Material
+
+    cam = rls.scene.camera
+    raster = rasterize(cam, rls.pre.vertices, rls.pre.faces, rays=False)
+    eye = cam.position
+    allv = np.arange(len(rls.pre.vertices))
+    ms: dict[str, dict[str, float]] = {}
+    ms["static_all_vertices_shade"] = _timeit(lambda: rls.vertex_radiance(eye, allv), reps)
+    ms["static_light_change"] = _timeit(lambda: (rls.set_equirect(maps[2]), rls.render(raster=raster)), reps)
+    ms["static_brdf_change"] = _timeit(lambda: (rls.set_material("clay", Material("ward", (0.5, 0.4, 0.3), (0.3, 0.3, 0.3), alpha=0.2)),
+                                                rls.render(raster=raster)), reps)
+    orbit = iter([Camera(np.array([2.5 * np.sin(a), 1.2, 2.5 * np.cos(a)]), cam.look_at, cam.up, cam.fov_deg,
+                         cam.width, cam.height) for a in np.linspace(0.3, 1.2, 1000)])
+    ms["static_view_change"] = _timeit(lambda: rls.render(next(orbit)), reps)   # raster + glossy re-shade
+    step = iter(np.linspace(0, 0.6, 1000))
+    ms["moving_all_vertices_shade"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
+                                                       rld.vertex_radiance(eye, allv)), reps)
+    ms["moving_frame"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]), rld.render()), reps)
+    turn = iter(np.linspace(0, 90, 1000))
+    ms["rotating_frame"] = _timeit(lambda: (rld.move("spot", [0.3, 0, 0], [0, next(turn), 0]), rld.render()), reps)
+    ms["moving_frame_with_light_change"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
+                                                            rld.set_equirect(maps[2]), rld.render()), reps)
+    rld.move("spot", [0, 0, 0])
+    return ms
 
 
 def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]) -> dict[str, Any]:
-    from device.sphere import luminance
     from hostlink.relight.precompute import precompute
-    from hostlink.relight.reference import reference_radiance
-    from hostlink.relight.render import Relighter, rasterize
-    from hostlink.relight.scene import Camera, Material, load_scene
+    from hostlink.relight.render import Relighter
+    from hostlink.relight.scene import load_scene
 
     spheres, grid = (8, 8) if quick else (32, 32)
-    reps = 3 if quick else 7
-    out: dict[str, Any] = {"vcf_spheres": spheres, "vcf_grid": grid}
+    reps = 3 if quick else 9
+    out: dict[str, Any] = {"vcf_spheres": spheres, "vcf_grid": grid, "reps": reps}
     dyn_scene = load_scene(_scene_file(d, True, 130, 640, 480))
     dyn = precompute(dyn_scene, spheres=spheres, grid=grid, cache_dir=d / "cache", progress=False)
     st_scene = load_scene(_scene_file(d, False, 130, 640, 480))
@@ -127,48 +200,43 @@ def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]
     out["vcf_points"] = len(f.offsets) - 1
     out["vcf_mean_nodes"] = float(np.diff(f.offsets).mean())
     out["mean_svc_nodes_static"] = float(np.diff(st.svc_offsets).mean())
-    # data sizes on the movable scene: SVC (float16 values) + VCF (1-bit values)
-    sh, si = _sizes(dyn.svc_offsets, "f16")
-    vh, vi = _sizes(f.offsets, "binary")
-    out["bytes"] = {"svc_height": sh, "svc_index": si, "vcf_height": vh, "vcf_index": vi,
-                    "ratio_svc": round(sh / si, 4), "ratio_vcf": round(vh / vi, 4),
-                    "ratio_total": round((sh + vh) / (si + vi), 4)}
-    # frame times
-    cam = st_scene.camera
+    out["bytes"] = _data_sizes(dyn)
     rls = Relighter(st_scene, st)
     rls.set_leaf_light(leaf_lights[1])
-    raster = rasterize(cam, st.vertices, st.faces)
-    eye = cam.position
-    allv = np.arange(len(st.vertices))
-    ms: dict[str, float] = {}
-    ms["static_all_vertices_shade"] = _timeit(lambda: rls.vertex_radiance(eye, allv), reps)
-    ms["static_light_change"] = _timeit(lambda: (rls.set_equirect(maps[2]), rls.render(raster=raster)), reps)
-    ms["static_brdf_change"] = _timeit(lambda: (rls.set_material("clay", Material("ward", (0.5, 0.4, 0.3), (0.3, 0.3, 0.3), alpha=0.2)),
-                                                rls.render(raster=raster)), reps)
-    orbit = iter([Camera(np.array([2.5 * np.sin(a), 1.2, 2.5 * np.cos(a)]), cam.look_at, cam.up, cam.fov_deg,
-                         cam.width, cam.height) for a in np.linspace(0.3, 1.2, 1000)])
-    ms["static_view_change"] = _timeit(lambda: rls.render(next(orbit)), reps)   # raster + glossy re-shade
     rld = Relighter(dyn_scene, dyn)
     rld.set_leaf_light(leaf_lights[1])
-    step = iter(np.linspace(0, 0.6, 1000))
-    ms["moving_all_vertices_shade"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
-                                                       rld.vertex_radiance(eye, allv)), reps)
-    ms["moving_frame"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]), rld.render()), reps)
-    out["frame_ms"] = {k: round(v, 1) for k, v in ms.items()}
-    _, nodes = rld.vertex_radiance(eye, allv)
-    out["moving_mean_merged_nodes"] = float(nodes.mean())
-    # dynamic (VCF) error against the brute force with the spot moved by 0.3 along x
-    rld.move("spot", [0.3, 0, 0])
-    vidx = np.arange(0, len(dyn.vertices), 40 if quick else 10)
-    ref = reference_radiance(rld, leaf_lights, eye, vidx)
-    errs = {}
-    for mi, name in enumerate(MAPS):
-        rld.set_leaf_light(leaf_lights[mi])
-        b, _ = rld.vertex_radiance(eye, vidx)
-        y, yr = luminance(b), luminance(ref[mi])
-        rel = np.abs(y - yr) / np.maximum(yr, 1e-12)
-        errs[name] = {"rel_rms": round(_rel_rms(y, yr), 4), "median_rel": round(float(np.median(rel)), 4)}
-    out["moving_error_vs_reference"] = errs
+    eye = st_scene.camera.position
+    out["stage_ms"] = _stages(rld, eye, leaf_lights[1], reps)
+    out["frame_ms"] = _frames(rls, rld, maps, reps)
+    _, nodes = rld.vertex_radiance(eye, np.arange(len(dyn.vertices)))
+    out["moving_mean_occluded_pieces"] = float(nodes.mean())
+    # errors of the very scenes timed, against brute force on every stride-th vertex
+    stride = 40 if quick else 10
+    vidx = np.arange(0, len(st.vertices), stride)
+    spot = st.object_id[vidx] == 0
+    out["static_error_vs_reference"] = _errors(rls, leaf_lights, eye, vidx, {"spot": spot, "ground": ~spot})
+    for label, rot in (("moving", None), ("rotated", [0.0, 40.0, 0.0])):
+        rld.move("spot", [0.3, 0, 0], rot)
+        dist = np.linalg.norm(rld.positions()[vidx] - rld._centers()[0], axis=1)
+        inner = (dyn.object_id[vidx] == 1) & (dist < rld._radii[0, 0])
+        out[f"{label}_error_vs_reference"] = _errors(
+            rld, leaf_lights, eye, vidx, {"spot": spot, "ground_inside_inner_sphere": inner,
+                                          "ground_outside_inner_sphere": (dyn.object_id[vidx] == 1) & ~inner})
+    rld.move("spot", [0, 0, 0])
+    return out
+
+
+def _data_sizes(pre) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+    """Height-coded vs index-coded bytes with the same value encodings on both sides: SVC values
+    as 8-bit codes + a float16 scale per cut (what the renderer uses) and as float16; VCF 1 bit."""
+    f = pre.vcf[0]
+    vh, vi = _sizes(f.offsets, "binary")
+    out: dict[str, Any] = {"vcf_height": vh, "vcf_index": vi, "ratio_vcf": round(vh / vi, 4)}
+    for kind in ("u8", "f16"):
+        sh, si = _sizes(pre.svc_offsets, kind)
+        out[kind] = {"svc_height": sh, "svc_index": si, "ratio_svc": round(sh / si, 4),
+                     "total_height": sh + vh, "total_index": si + vi,
+                     "ratio_total": round((sh + vh) / (si + vi), 4)}
     return out
 
 
@@ -196,19 +264,27 @@ def _plots(out_dir: Path, acc: dict[str, Any], speed: dict[str, Any]) -> None:
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(7, 4))
     fm = speed["frame_ms"]
-    ax.barh(list(fm), list(fm.values()))
-    ax.set(xlabel="ms (median)", title=f"frame time, {speed['vertices']} vertices, this machine")
+    ax.barh(list(fm), [v["min"] for v in fm.values()], label="min")
+    ax.barh(list(fm), [v["median"] - v["min"] for v in fm.values()], left=[v["min"] for v in fm.values()],
+            alpha=0.5, label="median")
+    ax.axvline(50, color="k", lw=0.8)
+    ax.axvline(250, color="k", lw=0.8, ls=":")
+    ax.legend(fontsize=7)
+    ax.set(xlabel="ms", title=f"frame time, {speed['vertices']} vertices, this machine")
     fig.tight_layout()
     fig.savefig(out_dir / "relight_frame_ms.png", dpi=100)
     plt.close(fig)
 
 
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
+    import os
+
     from device.imageio import read_hdr_image
     from hostlink.relight.directions import cluster_compactness
     from hostlink.relight.lighting import leaf_light_from_equirect
     from hostlink.relight.precompute import default_cache_dir
 
+    load_before = os.getloadavg()
     out_dir.mkdir(parents=True, exist_ok=True)
     d = default_cache_dir() / "bench"              # scene files + precompute cache, outside the repo
     d.mkdir(parents=True, exist_ok=True)
@@ -224,6 +300,11 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
         "max_rel_rms_default_tau_moment": max(v["moment"]["rel_rms"] for v in default["maps"].values()),
         "max_rel_rms_default_tau_plain": max(v["plain"]["rel_rms"] for v in default["maps"].values()),
         "frame_ms": speed["frame_ms"],
+        "stage_ms": speed["stage_ms"],
+        "load_average_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
+        "max_static_error_20k": max(v["all"] for v in speed["static_error_vs_reference"].values()),
+        "max_moving_error_20k_outside_inner_sphere": max(
+            v.get("ground_outside_inner_sphere", 0.0) for v in speed["moving_error_vs_reference"].values()),
         "precompute_spot_3555v_svc_s": default["precompute_s"],
         "precompute_20k_static_s": speed["precompute_static_s"],
         "precompute_20k_movable_total_s": speed["precompute_movable_total_s"],

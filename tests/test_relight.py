@@ -130,23 +130,41 @@ def test_binary_cut_is_lossless_and_minimal(seed: int) -> None:
 # ---- coding ------------------------------------------------------------------------------------
 
 
-@settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 10_000), p=st.floats(0.05, 0.97), binary=st.booleans())
-def test_encode_decode_round_trip(seed: int, p: float, binary: bool) -> None:
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), p=st.floats(0.05, 0.97), kind=st.sampled_from(["binary", "f16", "u8"]))
+def test_encode_decode_round_trip(seed: int, p: float, kind: str) -> None:
     rng = np.random.default_rng(seed)
-    h, v = random_cut(rng, p, binary)
+    h, v = random_cut(rng, p, kind == "binary")
     assert C.is_cut(h)
-    kind = "binary" if binary else "f16"
     data = C.encode_height(h, v, kind)
     assert len(data) == C.height_coded_nbytes(len(h), kind)
     h2, v2 = C.decode_height(data, kind)
     assert np.array_equal(h2, h)
-    np.testing.assert_array_equal(v2, v if binary else v.astype(np.float16).astype(np.float32))
+    if kind == "binary":
+        np.testing.assert_array_equal(v2, v)
+    elif kind == "f16":
+        np.testing.assert_array_equal(v2, v.astype(np.float16).astype(np.float32))
+    else:                                   # 8-bit codes, float16 scale >= max: step <= max / 255
+        assert np.abs(v2 - v).max() <= 0.5 / 255 * v.max() * (1 + 2e-3) + 1e-9
+        np.testing.assert_array_equal(v2, C.quantize_cuts_u8(np.array([0, len(v)]), v))
     idata = C.encode_index(h, v, kind)
     assert len(idata) == 4 + C.index_coded_nbytes(len(h), kind)
     h3, v3 = C.decode_index(idata, kind)
     assert np.array_equal(h3, h)
     assert np.array_equal(v3, v2)
+
+
+def test_u8_quantisation_of_many_cuts_and_degenerate_cuts() -> None:
+    rng = np.random.default_rng(11)
+    cuts = [random_cut(rng, 0.6, False) for _ in range(20)]
+    cuts.append((np.array([15], np.uint8), np.zeros(1, np.float32)))          # all-dark cut
+    offs = np.concatenate([[0], np.cumsum([len(h) for h, _ in cuts])])
+    q = C.quantize_cuts_u8(offs, np.concatenate([v for _, v in cuts]))
+    for k, (h, v) in enumerate(cuts):
+        np.testing.assert_array_equal(q[offs[k]:offs[k + 1]], C.decode_height(C.encode_height(h, v, "u8"), "u8")[1])
+    assert q[-1] == 0
+    # same value encoding on both sides: height-coded u8 = (n/2 + n + 2) vs index-coded (2n + n + 2)
+    assert C.height_coded_nbytes(1000, "u8") / C.index_coded_nbytes(1000, "u8") == pytest.approx(1502 / 3002)
 
 
 def test_is_cut_rejects_holes_and_overlaps() -> None:

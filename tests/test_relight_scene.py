@@ -331,3 +331,23 @@ def test_render_cache_matches_fresh_render(tiny: tuple) -> None:
     rl.move("cube", [0.3, 0, 0.1])
     np.testing.assert_allclose(rl.render(cam2)[0], fresh(cam2), rtol=1e-6, atol=1e-9)
     assert rl.render(cam2)[1]["shaded_vertices"] == 0     # nothing changed: all cached
+
+
+def test_cli_move_and_rotate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from device.imageio import read_hdr_image, write_exr
+    from hostlink.relight.cli import main
+
+    p = write_scene(tmp_path)
+    lights = tmp_path / "sky.exr"
+    write_exr(lights, sky())
+    base = [str(p), "--lights", str(lights), "--cache", str(tmp_path / "cache"), "--spheres", "4", "--grid", "6",
+            "--quiet"]
+    assert main([*base, "--out", str(tmp_path / "a.exr"), "--move", "cube=0.3,0,0"]) == 0
+    assert main([*base, "--out", str(tmp_path / "b.exr"), "--move", "cube=0.3,0,0", "--rotate", "cube=0,35,0"]) == 0
+    a, b = read_hdr_image(tmp_path / "a.exr"), read_hdr_image(tmp_path / "b.exr")
+    assert np.isfinite(b).all()
+    assert np.abs(a - b).max() > 1e-3 * a.max()                # the cube turned
+    assert main([*base, "--out", str(tmp_path / "c.exr"), "--rotate", "cube=0,x,0"]) == 2
+    assert "--rotate 'cube=0,x,0': expected NAME=rx,ry,rz" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "c.exr"), "--rotate", "ground=0,10,0"]) == 2
+    assert "'ground' is not a movable object" in capsys.readouterr().err

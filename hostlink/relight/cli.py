@@ -3,7 +3,9 @@
 URL forms: ``http://host:port`` (fetches ``/api/v1/lights``), or a full URL ending in
 ``probe.exr`` / ``probe.hdr`` / ``lights``. ``--live`` keeps a WebSocket on ``/api/v1/stream``
 open and re-renders ``--out`` whenever a light set arrives (``--frames N`` stops after N).
-``--token`` (or the URL's ``access_token``) is sent as a bearer token.
+``--token`` (or the URL's ``access_token``) is sent as a bearer token. ``--move NAME=dx,dy,dz``
+and ``--rotate NAME=rx,ry,rz`` (XYZ Euler degrees, about the object's VCF centre) pose movable
+objects relative to their precompute pose.
 """
 
 from __future__ import annotations
@@ -104,7 +106,7 @@ def write_image(path: Path, img: np.ndarray, mask: np.ndarray | None = None) -> 
         raise InputError(f"{path}: cannot write image", param="--out")
 
 
-def _parse_move(items: list[str]) -> list[tuple[str, np.ndarray]]:
+def _parse_move(items: list[str], flag: str = "--move", form: str = "NAME=dx,dy,dz") -> list[tuple[str, np.ndarray]]:
     out = []
     for it in items:
         name, _, vec = it.partition("=")
@@ -112,8 +114,8 @@ def _parse_move(items: list[str]) -> list[tuple[str, np.ndarray]]:
             v = np.array([float(x) for x in vec.split(",")])
         except ValueError:
             v = np.zeros(0)
-        if v.shape != (3,):
-            raise InputError(f"--move {it!r}: expected NAME=dx,dy,dz", param="--move")
+        if v.shape != (3,) or not np.isfinite(v).all():
+            raise InputError(f"{flag} {it!r}: expected {form}", param=flag)
         out.append((name, v))
     return out
 
@@ -131,10 +133,15 @@ def _run(a: argparse.Namespace) -> int:
     pre = precompute(scene, tau=a.tau, spheres=a.spheres, grid=a.grid, cache_dir=a.cache,
                      progress=not a.quiet)
     rl = Relighter(scene, pre)
-    for name, v in _parse_move(a.move):
-        if name not in [o.name for o in scene.objects] or not scene.objects[[o.name for o in scene.objects].index(name)].movable:
-            raise InputError(f"--move: {name!r} is not a movable object of {a.scene}", param="--move")
-        rl.move(name, v)
+    moves = dict(_parse_move(a.move))
+    turns = dict(_parse_move(a.rotate, "--rotate", "NAME=rx,ry,rz (degrees)"))
+    names = [o.name for o in scene.objects]
+    for flag, d in (("--move", moves), ("--rotate", turns)):
+        for name in d:
+            if name not in names or not scene.objects[names.index(name)].movable:
+                raise InputError(f"{flag}: {name!r} is not a movable object of {a.scene}", param=flag)
+    for name in set(moves) | set(turns):
+        rl.move(name, moves.get(name, np.zeros(3)), turns.get(name))
     bg = lights if kind == "map" else None
     rl.set_equirect(lights) if kind == "map" else rl.set_lightset(lights)
     t0 = time.perf_counter()
@@ -169,6 +176,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--cache", type=Path, default=None, help="precompute cache dir (default ~/.cache/lightprobe/relight)")
     p.add_argument("--move", action="append", default=[], metavar="NAME=dx,dy,dz",
                    help="translate a movable object before rendering (repeatable)")
+    p.add_argument("--rotate", action="append", default=[], metavar="NAME=rx,ry,rz",
+                   help="rotate a movable object about its VCF centre by XYZ Euler angles in degrees "
+                        "(applied before --move's translation; repeatable)")
     p.add_argument("--token", default=None, help="bearer token for the probe's API")
     p.add_argument("--live", action="store_true", help="re-render whenever the probe's lights change")
     p.add_argument("--frames", type=int, default=0, help="with --live: stop after N updates (0 = forever)")

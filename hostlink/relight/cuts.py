@@ -6,6 +6,7 @@ a node's position follows from the heights of the nodes before it, so a cut is f
 index-coded form (previous methods) stores a 16-bit heap index per node instead.
 
 Dtype policy: leaf values float64 in, cut values float32 (SVC) or uint8 0/1 (VCF); sums float64.
+Stored SVC values: 8-bit codes with a float16 scale per cut (``u8``), or float16 (``f16``).
 
 References
 ----------
@@ -36,6 +37,8 @@ __all__ = [
     "index_coded_nbytes",
     "is_cut",
     "merge_cuts",
+    "quantize_cuts_u8",
+    "quantize_u8",
     "select_cut",
 ]
 
@@ -242,28 +245,81 @@ def cut_interpolate(cuts: list[tuple[np.ndarray, np.ndarray]], weights: np.ndarr
 
 
 # ---- storage: height-coded vs index-coded ---------------------------------------------------------
+# Value encodings (the same for both position codings, so the comparison is fair):
+#   "binary": 1 bit per node (VCF);
+#   "f16":    IEEE half float per node;
+#   "u8":     8-bit linear code per node, v = code / 255 * scale, with one float16 scale per cut
+#             (the cut's largest value; SVC values are >= 0). Step <= 0.2% of the cut's maximum.
+_SCALE_BYTES = 2
+
+
+def quantize_u8(values: np.ndarray) -> tuple[float, np.ndarray]:
+    """(float16-representable scale, uint8 codes) of one cut's non-negative values."""
+    v = np.maximum(np.nan_to_num(np.asarray(values, np.float64)), 0.0)
+    scale = float(np.float16(v.max())) if v.size else 0.0
+    if scale > 0 and v.size and v.max() > scale:                   # rounding down would clip
+        scale = float(np.nextafter(np.float16(scale), np.float16(np.inf)))
+    codes = np.rint(v / scale * 255).clip(0, 255).astype(np.uint8) if scale > 0 else np.zeros(v.size, np.uint8)
+    return scale, codes
+
+
+def quantize_cuts_u8(offsets: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Values of many cuts (cut k at ``values[offsets[k]:offsets[k+1]]``) as the u8 encoding
+    stores them (float32): what a renderer reading the u8 stream sees."""
+    v = np.maximum(np.nan_to_num(np.asarray(values, np.float64)), 0.0)
+    lens = np.diff(offsets)
+    out = np.zeros(len(v), np.float32)
+    if not len(v):
+        return out
+    nz = lens > 0
+    mx = np.zeros(len(lens))
+    mx[nz] = np.maximum.reduceat(v, offsets[:-1][nz])
+    scale = mx.astype(np.float16).astype(np.float64)
+    up = scale < mx                                                  # keep scale >= max
+    scale[up] = np.nextafter(mx[up].astype(np.float16), np.float16(np.inf)).astype(np.float64)
+    s = np.repeat(scale, lens)
+    codes = np.where(s > 0, np.rint(v / np.where(s > 0, s, 1) * 255), 0).clip(0, 255)
+    out[:] = codes / 255.0 * s
+    return out
+
+
 def _value_bytes(values: np.ndarray, kind: str) -> bytes:
     if kind == "binary":
         return np.packbits(np.asarray(values, np.uint8) & 1).tobytes()
     if kind == "f16":
         return np.asarray(values, np.float16).tobytes()
-    raise ValueError(f"unknown value kind {kind!r} (binary or f16)")
+    if kind == "u8":
+        scale, codes = quantize_u8(values)
+        return np.float16(scale).tobytes() + codes.tobytes()
+    raise ValueError(f"unknown value kind {kind!r} (binary, f16 or u8)")
 
 
 def _values_from(buf: bytes, n: int, kind: str) -> np.ndarray:
     if kind == "binary":
         return np.unpackbits(np.frombuffer(buf, np.uint8))[:n].astype(np.uint8)
+    if kind == "u8":
+        scale = float(np.frombuffer(buf, np.float16, count=1)[0])
+        codes = np.frombuffer(buf, np.uint8, count=n, offset=_SCALE_BYTES)
+        return (codes / 255.0 * scale).astype(np.float32)
     return np.frombuffer(buf, np.float16, count=n).astype(np.float32)
 
 
+def _values_nbytes(n: int, kind: str) -> int:
+    if kind == "binary":
+        return (n + 7) // 8
+    if kind == "u8":
+        return _SCALE_BYTES + n
+    return 2 * n
+
+
 def height_coded_nbytes(n: int, kind: str) -> int:
-    """Bytes of a height-coded cut: 4-bit heights (two per byte) + values (1 bit or float16)."""
-    return (n + 1) // 2 + ((n + 7) // 8 if kind == "binary" else 2 * n)
+    """Bytes of a height-coded cut: 4-bit heights (two per byte) + values."""
+    return (n + 1) // 2 + _values_nbytes(n, kind)
 
 
 def index_coded_nbytes(n: int, kind: str) -> int:
-    """Bytes of an index-coded cut: 16-bit heap indices + values (1 bit or float16)."""
-    return 2 * n + ((n + 7) // 8 if kind == "binary" else 2 * n)
+    """Bytes of an index-coded cut: 16-bit heap indices + values (the same value encoding)."""
+    return 2 * n + _values_nbytes(n, kind)
 
 
 def encode_height(heights: np.ndarray, values: np.ndarray, kind: str = "binary") -> bytes:

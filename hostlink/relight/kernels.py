@@ -25,6 +25,23 @@ _MAXC = 1 + 8 * 8
 
 
 @njit(cache=True, fastmath=True, inline="always")
+def _pow(c: float, p: float) -> float:
+    """c^p for c > 0: repeated squaring when p is a small whole number (Phong / Blinn-Phong
+    exponents usually are), else the library pow."""
+    if p == np.floor(p) and 0 <= p < 4096:
+        e = int(p)
+        r = 1.0
+        x = c
+        while e > 0:
+            if e & 1:
+                r *= x
+            x *= x
+            e >>= 1
+        return r
+    return c ** p
+
+
+@njit(cache=True, fastmath=True, inline="always")
 def brdf_spec(typ: int, p: float, n: np.ndarray, wx: float, wy: float, wz: float,
               ox: float, oy: float, oz: float) -> float:
     """Specular lobe (multiplies ks) of the material; 0 for Lambert."""
@@ -36,7 +53,7 @@ def brdf_spec(typ: int, p: float, n: np.ndarray, wx: float, wy: float, wz: float
         ry = 2 * ci * n[1] - wy
         rz = 2 * ci * n[2] - wz
         c = rx * ox + ry * oy + rz * oz
-        return (p + 2) * 0.5 * _INV_PI * c ** p if c > 0 else 0.0
+        return (p + 2) * 0.5 * _INV_PI * _pow(c, p) if c > 0 else 0.0
     hx = wx + ox
     hy = wy + oy
     hz = wz + oz
@@ -47,7 +64,7 @@ def brdf_spec(typ: int, p: float, n: np.ndarray, wx: float, wy: float, wz: float
     if ch <= 0:
         return 0.0
     if typ == 2:                                           # Blinn-Phong: (p+8)/(8pi) (n.h)^p
-        return (p + 8) * 0.125 * _INV_PI * ch ** p
+        return (p + 8) * 0.125 * _INV_PI * _pow(ch, p)
     co = n[0] * ox + n[1] * oy + n[2] * oz                 # Ward (isotropic), Eq. 5
     if co <= 0 or ci <= 0:
         return 0.0
@@ -128,9 +145,10 @@ def _node_light(P: np.ndarray, Q: np.ndarray, M: np.ndarray, thr: np.ndarray, nd
 @njit(cache=True, parallel=True)
 def svc_weights(normals: np.ndarray, offs: np.ndarray, hs: np.ndarray, vs: np.ndarray,
                 M: np.ndarray, thr: np.ndarray, moment: bool, out: np.ndarray) -> None:
-    """Light-independent per-node factors for :func:`shade_static`: ``v / (n . M_k)`` (> 0) for
-    nodes that take the cosine-moment correction (entirely above the horizon, height > 0),
-    ``-v`` (<= 0) for the others; 0 for dark nodes."""
+    """Light-independent per-node factors (float32) for :func:`shade_static`: ``v / (n . M_k)``
+    (> 0) for nodes that take the cosine-moment correction (entirely above the horizon, height
+    > 0), ``-v`` (<= 0) for the others; 0 for dark nodes. The cosine is folded in here once, so a
+    Lambertian vertex needs no per-node BRDF or cosine evaluation at render time."""
     for i in prange(offs.shape[0] - 1):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         leaf = 0
@@ -146,72 +164,91 @@ def svc_weights(normals: np.ndarray, offs: np.ndarray, hs: np.ndarray, vs: np.nd
             leaf += 1 << h
 
 
+@njit(cache=True, fastmath=True)
+def _static_diffuse(o0: int, o1: int, hs: np.ndarray, sw: np.ndarray, T: np.ndarray, nx: float,
+                    ny: float, nz: float) -> tuple[float, float, float]:
+    """sum_k L_k V_k over one SVC (no BRDF): 3 FMAs per plain node, 9 per corrected node."""
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
+    pr = pg = pb = 0.0
+    leaf = 0
+    for q in range(o0, o1):
+        h = hs[q]
+        node = 2 * leaf + (1 << h) - 1                     # in-order row: increasing along the cut
+        leaf += 1 << h
+        w = sw[q]
+        b = max(w, 0.0)                                    # cosine-moment corrected node: sw > 0
+        a = max(-w, 0.0)                                   # plain node: sw < 0 (branch-free)
+        s0 += b * T[node, 3]
+        s1 += b * T[node, 4]
+        s2 += b * T[node, 5]
+        s3 += b * T[node, 6]
+        s4 += b * T[node, 7]
+        s5 += b * T[node, 8]
+        s6 += b * T[node, 9]
+        s7 += b * T[node, 10]
+        s8 += b * T[node, 11]
+        pr += a * T[node, 0]
+        pg += a * T[node, 1]
+        pb += a * T[node, 2]
+    return (pr + nx * s0 + ny * s1 + nz * s2, pg + nx * s3 + ny * s4 + nz * s5,
+            pb + nx * s6 + ny * s7 + nz * s8)
+
+
+@njit(cache=True, fastmath=True)
+def _static_specular(o0: int, o1: int, hs: np.ndarray, sw: np.ndarray, T: np.ndarray,
+                     typ: int, p: float, n: np.ndarray, ox: float, oy: float,
+                     oz: float) -> tuple[float, float, float]:
+    """sum_k L_k V_k f_s(w_k, w_o): the specular lobe once per node, at its light centroid."""
+    nx, ny, nz = n[0], n[1], n[2]
+    sr = sg = sb = 0.0
+    leaf = 0
+    for q in range(o0, o1):
+        h = hs[q]
+        node = 2 * leaf + (1 << h) - 1
+        leaf += 1 << h
+        w = sw[q]
+        if w == 0:
+            continue
+        if w > 0:
+            lr = w * (nx * T[node, 3] + ny * T[node, 4] + nz * T[node, 5])
+            lg = w * (nx * T[node, 6] + ny * T[node, 7] + nz * T[node, 8])
+            lb = w * (nx * T[node, 9] + ny * T[node, 10] + nz * T[node, 11])
+        else:
+            lr, lg, lb = -w * T[node, 0], -w * T[node, 1], -w * T[node, 2]
+        if lr == 0 and lg == 0 and lb == 0:
+            continue
+        f = brdf_spec(typ, p, n, T[node, 12], T[node, 13], T[node, 14], ox, oy, oz)
+        sr += lr * f
+        sg += lg * f
+        sb += lb * f
+    return sr, sg, sb
+
+
 @njit(cache=True, parallel=True, fastmath=True)
 def shade_static(vidx: np.ndarray, normals: np.ndarray, wo: np.ndarray, matid: np.ndarray,
                  mats: np.ndarray, offs: np.ndarray, hs: np.ndarray, sw: np.ndarray,
-                 ndir: np.ndarray, P: np.ndarray, Q: np.ndarray, out: np.ndarray) -> None:
-    """B = sum over SVC nodes of L_k V_k f_r (static scene: one cut per vertex).
+                 T: np.ndarray, out: np.ndarray) -> None:
+    """B = sum over SVC nodes of L_k V_k f_r(w_k, w_o) (Iwasaki et al. Eq. 3, one cut per vertex).
 
-    ``sw`` from :func:`svc_weights`. Prefix-sum rows at a node's end are reused as the next
-    node's start (nodes are contiguous in leaf order), so each node loads one P and one Q row.
+    ``sw`` from :func:`svc_weights` (cosine folded in), ``T`` the per-node light table in
+    in-order layout (:func:`hostlink.relight.lighting.node_table`). Diffuse part: plain nodes
+    accumulate ``-sw L_k`` (3 sums), moment-corrected ones ``sw (L_c w)_k`` (9 sums, dotted with
+    n once per vertex), times kd / pi once; the specular lobe (materials with ks != 0 only) is
+    evaluated once per node, at the node's light centroid.
     """
     for t in prange(vidx.shape[0]):
         i = vidx[t]
         m = matid[i]
-        lambert = mats[m, 0] == 0
+        typ = int(mats[m, 0])
         n = normals[i]
-        nx, ny, nz = n[0], n[1], n[2]
-        ar = ag = ab = 0.0
-        leaf = 0
-        last = -1
-        p0 = p1 = p2 = 0.0
-        q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = q8 = 0.0
-        for q in range(offs[i], offs[i + 1]):
-            h = hs[q]
-            w = sw[q]
-            e = leaf + (1 << h)
-            if w != 0:                                    # Eq. 3: L_k V_k f_r(w_k, w_o)
-                if last != leaf:
-                    p0, p1, p2 = P[leaf, 0], P[leaf, 1], P[leaf, 2]
-                    r = Q[leaf]
-                    q0, q1, q2, q3, q4, q5, q6, q7, q8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
-                e0, e1, e2 = P[e, 0], P[e, 1], P[e, 2]
-                r = Q[e]
-                d0, d1, d2, d3, d4, d5 = r[0] - q0, r[1] - q1, r[2] - q2, r[3] - q3, r[4] - q4, r[5] - q5
-                d6, d7, d8 = r[6] - q6, r[7] - q7, r[8] - q8
-                if w > 0:                                 # cosine-moment corrected node
-                    lr = (nx * d0 + ny * d1 + nz * d2) * w
-                    lg = (nx * d3 + ny * d4 + nz * d5) * w
-                    lb = (nx * d6 + ny * d7 + nz * d8) * w
-                else:
-                    lr = (e0 - p0) * -w
-                    lg = (e1 - p1) * -w
-                    lb = (e2 - p2) * -w
-                if lambert:                               # f_r constant: sum L_k V_k only
-                    ar += lr
-                    ag += lg
-                    ab += lb
-                else:
-                    node = (1 << (15 - h)) + (leaf >> h)
-                    wx, wy, wz = ndir[node, 0], ndir[node, 1], ndir[node, 2]
-                    c0 = d0 + d3 + d6
-                    c1 = d1 + d4 + d7
-                    c2 = d2 + d5 + d8
-                    sl = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-                    if w > 0 and sl > 0:                  # BRDF at the light centroid
-                        wx, wy, wz = c0 / sl, c1 / sl, c2 / sl
-                    fr, fg, fb = _brdf(mats, m, n, wo[t], wx, wy, wz)
-                    ar += lr * fr
-                    ag += lg * fg
-                    ab += lb * fb
-                p0, p1, p2 = e0, e1, e2
-                q0, q1, q2, q3, q4, q5, q6, q7, q8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
-                last = e
-            leaf = e
-        acc = _finish(mats, m, lambert, ar, ag, ab)
-        out[t, 0] = acc[0]
-        out[t, 1] = acc[1]
-        out[t, 2] = acc[2]
+        dr, dg, db = _static_diffuse(offs[i], offs[i + 1], hs, sw, T, n[0], n[1], n[2])
+        sr = sg = sb = 0.0
+        if typ != 0 and (mats[m, 4] != 0 or mats[m, 5] != 0 or mats[m, 6] != 0):
+            sr, sg, sb = _static_specular(offs[i], offs[i + 1], hs, sw, T, typ, mats[m, 7], n,
+                                          wo[t, 0], wo[t, 1], wo[t, 2])
+        out[t, 0] = mats[m, 1] * _INV_PI * dr + mats[m, 4] * sr
+        out[t, 1] = mats[m, 2] * _INV_PI * dg + mats[m, 5] * sg
+        out[t, 2] = mats[m, 3] * _INV_PI * db + mats[m, 6] * sb
 
 
 @njit(cache=True, fastmath=True)

@@ -5,13 +5,15 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
 from device.errors import InputError
 from hostlink.relight.render import Relighter
 
-__all__ = ["live_loop", "stream_url"]
+__all__ = ["live_loop", "run_live", "stream_url"]
 
 
 def stream_url(src: str) -> str:
@@ -21,7 +23,10 @@ def stream_url(src: str) -> str:
     return urlunsplit((scheme, u.netloc, "/api/v1/stream", "", ""))
 
 
-async def _live(src: str, token: str | None, rl: Relighter, out: Path, frames: int, quiet: bool) -> int:
+async def run_live(src: str, token: str | None, rl: Relighter, out: Path, frames: int, quiet: bool,
+                   on_frame: Callable[[Any, Any], None] | None = None) -> int:
+    """Re-render ``out`` for every light set on the probe's stream; ``on_frame(light_set, image)``
+    is called after each write; stops after ``frames`` renders (0 = when the stream closes)."""
     import aiohttp
 
     from device.sampling.base import LightSet
@@ -42,6 +47,8 @@ async def _live(src: str, token: str | None, rl: Relighter, out: Path, frames: i
             rl.set_lightset(ls)
             img, _ = await asyncio.to_thread(rl.render)          # numba work off the loop
             await asyncio.to_thread(write_image, out, img)
+            if on_frame is not None:
+                on_frame(ls, img)
             done += 1
             if not quiet:
                 print(f"relight: frame {ls.frame} -> {out}", file=sys.stderr)
@@ -54,6 +61,6 @@ def live_loop(src: str, token: str | None, rl: Relighter, out: Path, frames: int
     import aiohttp
 
     try:
-        return asyncio.run(_live(src, token, rl, out, frames, quiet))
+        return asyncio.run(run_live(src, token, rl, out, frames, quiet))
     except aiohttp.ClientError as e:
         raise InputError(f"{src}: live stream failed ({e})", param="--lights") from None

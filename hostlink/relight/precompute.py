@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostlink.relight.cuts import binary_cut, select_cut
+from hostlink.relight.cuts import binary_cut, quantize_cuts_u8, select_cut
 from hostlink.relight.directions import LEAF_SOLID_ANGLE, NDIR, leaf_directions
 from hostlink.relight.scene import Scene, vertex_normals
 
@@ -74,7 +74,7 @@ class Precomputed:
     face_object: np.ndarray     # (F,)
     svc_offsets: np.ndarray     # (N+1,) int64
     svc_heights: np.ndarray     # uint8
-    svc_values: np.ndarray      # float32 (stored as float16 on disk)
+    svc_values: np.ndarray      # float32: the u8 (default) or float16 stored values, decoded
     vcf: dict[int, VCF] = field(default_factory=dict)
     tau: float = DEFAULT_TAU
     seconds: float = 0.0
@@ -222,11 +222,25 @@ def scene_eps(scene: Scene) -> float:
 
 def precompute(scene: Scene, *, tau: float = DEFAULT_TAU, spheres: int = 32, grid: int = 32,
                inner: float = 1.2, outer: float = 10.0, cache_dir: Path | None = None,
-               progress: bool = True) -> Precomputed:
+               progress: bool = True, value_bits: int = 8) -> Precomputed:
     """SVC for every vertex and a VCF for every movable object (cached on disk).
 
+    ``value_bits`` is the precision of the SVC values the renderer gets: 8 (default: the ``u8``
+    encoding of :mod:`hostlink.relight.cuts`, 8-bit codes with a float16 scale per cut) or 16
+    (float16). The disk cache keeps float16; the 8-bit values are derived from it, exactly as a
+    reader of the u8 stream would decode them.
     Deterministic: fixed direction set, fixed chunking, no randomness.
     """
+    if value_bits not in (8, 16):
+        raise ValueError("value_bits must be 8 or 16")
+    pc = _precompute(scene, tau, spheres, grid, inner, outer, cache_dir, progress)
+    if value_bits == 8:
+        pc.svc_values = quantize_cuts_u8(pc.svc_offsets, pc.svc_values)
+    return pc
+
+
+def _precompute(scene: Scene, tau: float, spheres: int, grid: int, inner: float, outer: float,
+                cache_dir: Path | None, progress: bool) -> Precomputed:
     import time
 
     t0 = time.perf_counter()

@@ -18,19 +18,20 @@ __all__ = ["reference_radiance"]
 def reference_radiance(rl: Relighter, leaf_lights: np.ndarray, eye: np.ndarray,
                        vidx: np.ndarray | None = None, chunk: int = 64) -> np.ndarray:
     """(maps, n, 3) radiance towards ``eye`` for each leaf-light array in ``leaf_lights``
-    (maps, 2^15, 3), with every object at its current translation occluding every vertex."""
+    (maps, 2^15, 3), with every object at its current pose (rotation and translation) occluding
+    every vertex; normals rotate with their object."""
     pre = rl.pre
     pos = rl.positions()
+    normals = rl.normals()
     vidx = np.arange(len(pos)) if vidx is None else np.asarray(vidx, np.int64)
-    meshes = [(o.mesh.vertices + rl.translation[k], o.mesh.faces) for k, o in enumerate(rl.scene.objects)]
-    es = build_embree(meshes)
+    es = build_embree([(pos, pre.faces)])
     eps = scene_eps(rl.scene)
     dirs = leaf_directions()
     L = np.ascontiguousarray(leaf_lights, np.float64).reshape(-1, dirs.shape[0], 3)
     out = np.zeros((L.shape[0], len(vidx), 3))
     for s in range(0, len(vidx), chunk):
         rows = vidx[s:s + chunk]
-        n = pre.normals[rows]
+        n = normals[rows]
         cos = n @ dirs.T
         vi, di = np.nonzero(cos > 0)
         occ = occluded(es, pos[rows][vi] + eps * n[vi], dirs[di])
@@ -39,6 +40,6 @@ def reference_radiance(rl: Relighter, leaf_lights: np.ndarray, eye: np.ndarray,
         wo = np.asarray(eye, float) - pos[rows]
         wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
         res = np.zeros((L.shape[0], len(rows), 3))
-        shade_dense(vc, rows, pre.normals, wo, rl.matid, rl.mats, dirs, L, res)
+        shade_dense(vc, rows, normals, wo, rl.matid, rl.mats, dirs, L, res)
         out[:, s:s + len(rows)] = res
     return out

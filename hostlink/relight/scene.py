@@ -37,6 +37,7 @@ __all__ = [
     "SceneObject",
     "load_obj",
     "load_scene",
+    "rotation_matrix",
     "vertex_normals",
 ]
 
@@ -155,7 +156,8 @@ def _vec(d: dict[str, Any], key: str, default: list[float], where: str) -> np.nd
     return arr
 
 
-def _rotation(deg: np.ndarray) -> np.ndarray:
+def rotation_matrix(deg: np.ndarray) -> np.ndarray:
+    """Rotation matrix of XYZ Euler angles in degrees (x first): ``Rz Ry Rx``."""
     ax, ay, az = np.radians(deg)
     rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
     ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
@@ -228,7 +230,7 @@ def load_scene(path: str | Path) -> Scene:
             raise InputError(f"{p}:{_line_of(text, json.dumps(mat))}: unknown material {mat!r} "
                              f"in object {name!r}")
         mesh = load_obj(mesh_path)
-        rot = _rotation(_vec(od, "rotation_deg", [0, 0, 0], where))
+        rot = rotation_matrix(_vec(od, "rotation_deg", [0, 0, 0], where))
         scale = float(od.get("scale", 1.0))
         v = mesh.vertices * scale @ rot.T + _vec(od, "translation", [0, 0, 0], where)
         objects.append(SceneObject(name, Mesh(v, mesh.faces), mat, bool(od.get("movable", False))))
