@@ -142,11 +142,42 @@ def _image_circle(images: list[np.ndarray], center: tuple[float, float]) -> floa
     return m.radius_px if m.radius_px < inscribed - 2 else None
 
 
+def _run(coro: Any) -> Any:
+    import asyncio
+
+    return asyncio.run(coro)
+
+
+def _camera_base(args: argparse.Namespace, camera: Any) -> Any:
+    """The calibration a camera capture builds on: --out, else --state's store, else the
+    camera's own ground truth (the simulator)."""
+    from .store import CalibrationStore
+
+    base = _load_existing(Path(args.out) if getattr(args, "out", None) else None)
+    if not base.body() and getattr(args, "state", None):
+        base = CalibrationStore(args.state).load().calibration or base
+    truth = getattr(camera, "truth_calibration", None)
+    if not base.body() and callable(truth):
+        base = truth()
+    return base
+
+
+def _check_source(args: argparse.Namespace, files: list[str] | str | None, what: str) -> None:
+    if bool(files) == bool(args.camera):
+        raise _err(f"give {what} or --camera SPEC (not both)", "--camera")
+    if args.scene and not args.camera:
+        raise _err("--scene needs --camera sim", "--scene")
+
+
 def cmd_response(args: argparse.Namespace) -> int:
     from .response import response_from_stack
 
-    if len(args.times) != len(args.images):
-        raise _err(f"--times has {len(args.times)} values for {len(args.images)} images", "--times")
+    _check_source(args, args.images, "IMG...")
+    if args.camera:
+        return _response_from_camera(args)
+    if args.times is None or len(args.times) != len(args.images):
+        n = 0 if args.times is None else len(args.times)
+        raise _err(f"--times has {n} values for {len(args.images)} images", "--times")
     imgs = [img for _, img in _read_images(args.images)]
     if any(i.dtype != np.uint8 or i.ndim != 3 for i in imgs):
         raise _err("response needs 8-bit RGB images: " + ", ".join(p for p, i in zip(args.images, imgs, strict=True)
@@ -160,13 +191,53 @@ def cmd_response(args: argparse.Namespace) -> int:
     return 0
 
 
+def _response_from_camera(args: argparse.Namespace) -> int:
+    """Bracket a static scene through the driver; processed output -> response solve, raw
+    output -> linearity check (a linear response is written only when it passes)."""
+    from drivers.base import PixelFormat
+
+    from .capture import make_camera, sweep_bracket
+    from .model import Response
+    from .response import linearity_check, response_from_stack
+
+    camera = make_camera(args.camera, args.scene)
+    frames, times = _run(sweep_bracket(camera, args.camera, args.exposures))
+    print(f"captured {len(frames)} exposures {times[0]:.3g} .. {times[-1]:.3g} s", file=sys.stderr)
+    f0 = frames[0]
+    if f0.format is not PixelFormat.RGB8:
+        rep = linearity_check([f.data for f in frames], times, f0.black_level, f0.white_level)
+        print(f"raw linearity: max deviation {rep.max_deviation_percent:.2f}% over {len(rep.deviations_percent)} "
+              "exposure pairs", file=sys.stderr)
+        if not rep.ok(args.linearity_tolerance):
+            print(f"lightprobe: error: raw output is not linear within {args.linearity_tolerance}%",
+                  file=sys.stderr)
+            return 1
+        _write(args, response=Response.linear(f0.format.bit_depth, f0.black_level, f0.white_level))
+        return 0
+    try:
+        # A whole frame per exposure: more samples than for a few photos (less noise in g)
+        resp = response_from_stack([f.data for f in frames], times, method=args.method, samples=1500)
+    except ValueError as e:
+        raise _err(f"--camera {args.camera}: {e}", "--camera") from e
+    _write(args, response=resp)
+    return 0
+
+
 def cmd_photometric(args: argparse.Namespace) -> int:
     from device.imageio import read_hdr_image
     from drivers.t10a import T10A, T10AError
 
     from .photometric import lux_statistics, photometric_scale
 
-    eq = read_hdr_image(args.map)
+    _check_source(args, args.map, "--map")
+    source = args.map or f"--camera {args.camera}"
+    if args.camera:
+        from .capture import capture_map, make_camera
+
+        camera = make_camera(args.camera, args.scene)
+        eq = _run(capture_map(camera, args.camera, _camera_base(args, camera)))
+    else:
+        eq = read_hdr_image(args.map)
     if args.lux is not None:
         values = list(args.lux)
     else:
@@ -180,7 +251,7 @@ def cmd_photometric(args: argparse.Namespace) -> int:
     try:
         phot = photometric_scale(stats.mean, eq)
     except ValueError as e:
-        raise _err(f"{args.map}: {e}", args.map) from e
+        raise _err(f"{source}: {e}", args.map or "--camera") from e
     print(json.dumps({"scale": phot.scale, "unit": phot.unit, "lux": stats.to_json()}), file=sys.stderr)
     _write(args, photometric=phot)
     return 0
@@ -191,9 +262,21 @@ def cmd_vignetting(args: argparse.Namespace) -> int:
 
     from .vignetting import vignetting_from_flat_field
 
-    img = read_hdr_image(args.flat)
+    _check_source(args, args.flat, "FLAT")
+    if args.camera:
+        from .capture import capture_flat_field, make_camera
+
+        camera = make_camera(args.camera, args.scene)
+        existing = _camera_base(args, camera)
+        print("flat field: cover the lens with the opal diffuser (or put the probe in the "
+              "integrating sphere) and keep the light steady", file=sys.stderr)
+        img = _run(capture_flat_field(camera, args.camera, frames=args.frames, response=existing.response))
+        source = f"--camera {args.camera}"
+    else:
+        img = read_hdr_image(args.flat)
+        existing = _load_existing(Path(args.out) if args.out else None)
+        source = args.flat
     h, w = img.shape[:2]
-    existing = _load_existing(Path(args.out) if args.out else None)
     if args.center:
         center = (args.center[0], args.center[1])
     elif existing.fisheye is not None:
@@ -202,9 +285,11 @@ def cmd_vignetting(args: argparse.Namespace) -> int:
         center = ((w - 1) / 2, (h - 1) / 2)
     radius = args.radius or (existing.mask.radius_px if existing.mask else min(w, h) / 2)
     try:
-        vig = vignetting_from_flat_field(img, center, radius)
+        max_r = args.max_r if args.max_r is not None else (0.97 if args.camera else 1.0)
+        vig = vignetting_from_flat_field(img, center, radius, max_r=max_r,
+                                         saturation=0.98 if args.camera else None)
     except ValueError as e:
-        raise _err(f"{args.flat}: {e}", args.flat) from e
+        raise _err(f"{source}: {e}", args.flat or "--camera") from e
     _write(args, vignetting=vig)
     return 0
 
@@ -320,6 +405,11 @@ def cmd_rollback(args: argparse.Namespace) -> int:
     return 0
 
 
+def camera_opts(sp: argparse.ArgumentParser, what: str) -> None:
+    sp.add_argument("--camera", metavar="SPEC", help=f"sim | v4l2:/dev/videoN | libcamera | uvc: {what}")
+    sp.add_argument("--scene", help="simulator scene NAME or map PATH (with --camera sim)")
+
+
 def out_opts(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--out", help="calibration JSON to write (merged if it exists)")
     sp.add_argument("--state", help="state directory: also save as a new version in its store")
@@ -328,7 +418,8 @@ def out_opts(sp: argparse.ArgumentParser) -> None:
 def _add_measure_parsers(sub: Any) -> None:
     """photometric, vignetting, mask and pose subcommands."""
     ph = sub.add_parser("photometric", help="photometric scale from a lux meter beside the probe")
-    ph.add_argument("--map", required=True, help="the probe's equirect map (.exr/.hdr) at the meter time")
+    ph.add_argument("--map", help="the probe's equirect map (.exr/.hdr) at the meter time")
+    camera_opts(ph, "capture the map now (one HDR burst, fused and projected)")
     src = ph.add_mutually_exclusive_group(required=True)
     src.add_argument("--port", help="serial port of a Konica Minolta T-10A")
     src.add_argument("--lux", type=float, nargs="+", help="readings typed in by hand (lux)")
@@ -339,9 +430,14 @@ def _add_measure_parsers(sub: Any) -> None:
     ph.set_defaults(fn=cmd_photometric)
 
     v = sub.add_parser("vignetting", help="radial fall-off from a linear flat-field image")
-    v.add_argument("flat", metavar="FLAT")
+    v.add_argument("flat", metavar="FLAT", nargs="?", help="linear flat-field image (.exr/.hdr)")
+    camera_opts(v, "capture the flat field now (the sim's scene 'uniform' is an integrating sphere)")
+    v.add_argument("--frames", type=int, default=4, help="frames averaged with --camera")
     v.add_argument("--center", type=float, nargs=2)
     v.add_argument("--radius", type=float, help="image-circle radius (px)")
+    v.add_argument("--max-r", type=float, default=None,
+                   help="fit radii up to this fraction of --radius (default 1; 0.97 with --camera: "
+                        "pixels straddling the housing ring stay out)")
     out_opts(v)
     v.set_defaults(fn=cmd_vignetting)
 
@@ -380,8 +476,11 @@ def _parser() -> argparse.ArgumentParser:
     f.set_defaults(fn=cmd_fisheye)
 
     r = sub.add_parser("response", help="response curve from a bracketed static scene")
-    r.add_argument("images", nargs="+", metavar="IMG")
-    r.add_argument("--times", nargs="+", type=float, required=True, help="exposure times (s)")
+    r.add_argument("images", nargs="*", metavar="IMG")
+    r.add_argument("--times", nargs="+", type=float, help="exposure times (s) of IMG...")
+    camera_opts(r, "capture the bracket now (a metering sweep one stop apart unless --exposures)")
+    r.add_argument("--exposures", nargs="+", type=float, help="exposure times (s) to capture with --camera")
+    r.add_argument("--linearity-tolerance", type=float, default=2.0, help="raw modes: max deviation (%%)")
     r.add_argument("--method", choices=("debevec", "robertson"), default="debevec")
     out_opts(r)
     r.set_defaults(fn=cmd_response)

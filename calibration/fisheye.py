@@ -37,6 +37,7 @@ __all__ = [
     "calibrate_views",
     "coverage_grid",
     "detect_board",
+    "equidistant_guess",
     "field_of_view_deg",
     "orient_corners",
     "parse_board",
@@ -224,6 +225,7 @@ def calibrate_views(
     max_rms_px: float = 1.0,
     image_circle: tuple[float, float, float] | None = None,
     progress: Callable[[str], None] | None = None,
+    guess: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FisheyeResult:
     """Robust fisheye calibration: retry past InitExtrinsics asserts, reject outlier views.
 
@@ -231,12 +233,17 @@ def calibrate_views(
     (a wrong detection can drag the whole solve away, after which per-view errors no longer
     single it out), :func:`_grow` restarts from the central views and adds the others while
     they agree with the model. Raises ValueError when no consistent set of ``min_views`` exists.
+
+    ``guess`` (K, D) initialises the solver (``CALIB_USE_INTRINSIC_GUESS``), e.g.
+    :func:`equidistant_guess` from the image circle: OpenCV's own start (f = max(w, h) / pi)
+    is far off for a circular fisheye on a small sensor and its extrinsic initialisation
+    then fails on most views.
     """
     say = progress or (lambda _msg: None)
     rejected: dict[str, str] = {}
     try:
         active, sol, errs = _robust_loop(list(views), image_size, min_views, outlier_factor,
-                                         outlier_floor_px, rejected, say)
+                                         outlier_floor_px, rejected, say, guess)
         ok = sol[0] <= max_rms_px
     except ValueError:
         ok = False
@@ -244,7 +251,7 @@ def calibrate_views(
         say("solve over all views is inconsistent: growing from the central views")
         rejected = {}
         active, sol, errs = _grow(views, image_size, min_views, outlier_factor, outlier_floor_px,
-                                  max_rms_px, rejected, say)
+                                  max_rms_px, rejected, say, guess)
     return _result(active, image_size, *sol, errs, rejected, image_circle)
 
 
@@ -309,8 +316,8 @@ def _pnp_rms(view: View, K: np.ndarray, D: np.ndarray) -> float:
 
 
 def _grow(views: Sequence[View], image_size: tuple[int, int], min_views: int, outlier_factor: float,
-          outlier_floor_px: float, max_rms_px: float, rejected: dict[str, str], say: Callable[[str], None]
-          ) -> tuple[list[View], Solution, np.ndarray]:
+          outlier_floor_px: float, max_rms_px: float, rejected: dict[str, str], say: Callable[[str], None],
+          guess: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[View], Solution, np.ndarray]:
     """Seed with the most central views, then add views that agree with the current model.
 
     Each round poses every pending view with the current intrinsics (fisheye solvePnP); those
@@ -324,7 +331,7 @@ def _grow(views: Sequence[View], image_size: tuple[int, int], min_views: int, ou
         seed_rej: dict[str, str] = {}
         try:
             active, sol, errs = _robust_loop(order[:seed_n], image_size, min_views, outlier_factor,
-                                             outlier_floor_px, seed_rej, say)
+                                             outlier_floor_px, seed_rej, say, guess)
         except ValueError:
             continue
         if sol[0] <= max_rms_px:
@@ -382,6 +389,16 @@ def _result(active: list[View], image_size: tuple[int, int], rms: float, K: np.n
     frac = int(np.count_nonzero(grid > 0)) / max(int(np.count_nonzero(inside)), 1)
     return FisheyeResult(model, rms, {v.name: float(e) for v, e in zip(active, errs, strict=True)},
                          [v.name for v in active], rejected, grid, frac, image_circle, rvecs, tvecs)
+
+
+def equidistant_guess(circle: tuple[float, float, float], fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K, D) of an equidistant fisheye whose image circle ``(cx, cy, radius)`` spans ``fov_deg``:
+    ``f = radius / (fov / 2)`` (rad), D = 0; a start for :func:`calibrate_views`."""
+    cx, cy, radius = (float(v) for v in circle)
+    if not (radius > 0 and 0 < fov_deg <= 360):
+        raise ValueError(f"image circle radius {radius} / field of view {fov_deg} deg out of range")
+    f = radius / np.radians(fov_deg / 2)
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]), np.zeros(4)
 
 
 def coverage_grid(corners: np.ndarray, circle: tuple[float, float, float], image_size: tuple[int, int],

@@ -7,8 +7,8 @@ detections; a still view is *accepted* when it puts corners into a coverage cell
 sectors of the image circle, :func:`calibration.fisheye.coverage_grid`) that holds fewer than
 ``cell_target`` corners, so holding the board in one place adds it once. After each accepted
 view (from ``min_views`` on) the robust solve (:func:`calibration.fisheye.calibrate_views`)
-runs and updates the RMS. ``good_enough``: at least ``min_views`` views, RMS <= ``target_rms``
-and coverage >= ``target_coverage``.
+runs and updates the RMS; coverage then counts only the views the solve kept. ``good_enough``:
+at least ``min_views`` views, RMS <= ``target_rms`` and coverage >= ``target_coverage``.
 
 The frame source is any ``drivers.base.Camera`` (:meth:`run`) or plain images pushed into
 :meth:`feed` (a dashboard, a test). Nothing runs at import or construction.
@@ -46,6 +46,10 @@ class LiveProgress:
     good_enough: bool = False
     last_event: str = ""
     missing_regions: list[str] = field(default_factory=list)
+    rejected: list[str] = field(default_factory=list)  # views the robust solve left out
+    grid: list[list[int]] = field(default_factory=list)  # corners per ring x sector, -1 off-sensor
+    last_corners: list[list[float]] | None = None  # the last detection (px), for drawing
+    focal_px: float | None = None
 
     def to_json(self) -> dict[str, object]:
         return dict(self.__dict__)
@@ -66,7 +70,8 @@ class LiveFisheyeCalibration:
     def __init__(self, board: BoardSpec, image_size: tuple[int, int], *, still_px: float = 1.0,
                  still_frames: int = 3, cell_target: int = 12, min_views: int = 6,
                  target_rms: float = 0.5, target_coverage: float = 0.6,
-                 image_circle: tuple[float, float, float] | None = None) -> None:
+                 image_circle: tuple[float, float, float] | None = None,
+                 guess: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.board = board
         self.image_size = image_size
         self.still_px, self.still_frames = float(still_px), int(still_frames)
@@ -78,7 +83,9 @@ class LiveFisheyeCalibration:
         self.result: FisheyeResult | None = None
         self._recent: deque[np.ndarray] = deque(maxlen=self.still_frames)
         self._obj = board_object_points(board)
+        self.guess = guess  # (K, D) start for the solver, e.g. fisheye.equidistant_guess
         self.progress = LiveProgress()
+        self.progress.grid = self._grid().tolist()
 
     def _grid(self, extra: np.ndarray | None = None) -> np.ndarray:
         pts = [v.corners for v in self.views] + ([extra] if extra is not None else [])
@@ -91,6 +98,7 @@ class LiveFisheyeCalibration:
         p = self.progress
         p.frames += 1
         corners = detect_board(frame_to_gray(image), self.board)
+        p.last_corners = None if corners is None else np.round(corners, 2).tolist()
         if corners is None:
             self._recent.clear()
             return self._event("no board")
@@ -114,22 +122,32 @@ class LiveFisheyeCalibration:
         self._update()
         return self._event("accepted")
 
-    def _update(self) -> None:
+    def _set_coverage(self, views: list[View]) -> None:
+        """Coverage fields of the progress from the corners of ``views``."""
         p = self.progress
-        grid = self._grid()
-        inside = grid >= 0
-        p.views = len(self.views)
-        p.coverage_percent = 100.0 * int(np.count_nonzero(grid > 0)) / max(int(np.count_nonzero(inside)), 1)
+        pts = np.concatenate([v.corners for v in views]) if views else np.zeros((0, 2))
+        grid = coverage_grid(pts, self.circle, self.image_size)
+        p.grid = grid.tolist()
+        p.coverage_percent = 100.0 * int(np.count_nonzero(grid > 0)) / max(int(np.count_nonzero(grid >= 0)), 1)
         rings, sectors = grid.shape
         p.missing_regions = [f"ring {i + 1}/{rings}, sector {j + 1}/{sectors}"
                              for i in range(rings) for j in range(sectors) if grid[i, j] == 0]
+
+    def _update(self) -> None:
+        p = self.progress
+        p.views = len(self.views)
+        self._set_coverage(self.views)
         if len(self.views) >= self.min_views:
             try:
                 self.result = calibrate_views(self.views, self.image_size, min_views=min(self.min_views, 4),
-                                              image_circle=self.circle)
+                                              image_circle=self.circle, guess=self.guess)
                 p.rms_px = self.result.rms_px
+                p.rejected = sorted(self.result.rejected)
+                p.focal_px = float(0.5 * (self.result.model.K[0, 0] + self.result.model.K[1, 1]))
             except ValueError:
-                p.rms_px = None
+                self.result, p.rms_px, p.focal_px = None, None, None
+        if self.result is not None and self.result.rejected:  # coverage counts only the views kept
+            self._set_coverage([v for v in self.views if v.name not in self.result.rejected])
         p.good_enough = (len(self.views) >= self.min_views and p.rms_px is not None
                          and p.rms_px <= self.target_rms
                          and p.coverage_percent >= 100.0 * self.target_coverage)
