@@ -5,6 +5,12 @@ the scene, the projector's remap tables, the stateful sampler, the last publishe
 one frame per :meth:`Pipeline.step`. Capture is async (the camera protocol); every whole-frame
 numpy stage runs in a worker thread, so the event loop only ever waits.
 
+Start-up and restarts are short: :meth:`Pipeline.start` only opens the camera; the projection
+tables (loaded from ``PipelineConfig.cache_dir``, built once per calibration otherwise) and the
+numba kernels load in a worker thread while the first burst is captured, and the first fused
+frame is published. After a camera fault the pipeline keeps its tables, sampler and the last good
+frame's exposure rates, so the first burst after the reconnect is planned, not a metering sweep.
+
 It skips what a scene does not need:
 
 - exposures: the planner brackets only the dynamic range the previous frame showed;
@@ -102,27 +108,11 @@ class FrameResult:
 
 
 def tone_map(radiance: np.ndarray, valid: np.ndarray | None = None, width: int = _PREVIEW_WIDTH) -> np.ndarray:
-    """Display image: exposure keyed on the log-average luminance, Reinhard, sRGB, uint8."""
-    import cv2
+    """The dashboard's fisheye preview: :func:`device.tonemap.tone_map` (hue-preserving
+    luminance Reinhard, robust log-average key) at most ``width`` pixels wide."""
+    from device.tonemap import tone_map as _tone_map
 
-    img: np.ndarray = np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    h, w = img.shape[:2]
-    if w > width:
-        img = cv2.resize(img, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
-        if valid is not None:
-            valid = cv2.resize(valid.astype(np.uint8), (img.shape[1], img.shape[0]),
-                               interpolation=cv2.INTER_NEAREST).astype(bool)
-    lum = img @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    sel = lum[valid] if valid is not None else lum.ravel()
-    sel = sel[sel > 0]
-    key = float(np.exp(np.mean(np.log(sel)))) if sel.size else 1.0
-    x = img * (0.18 / max(key, 1e-30))
-    x = x / (1.0 + x)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0), 1 / 2.4) - 0.055)
-    out = np.clip(srgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    if valid is not None:
-        out[~valid] = 0
-    return out
+    return _tone_map(radiance, valid, width)
 
 
 def _coarse_energy(healpix: np.ndarray) -> np.ndarray:
@@ -158,12 +148,17 @@ class Pipeline:
         self._current_exposure: float | None = None
         self._extra_lights = 0  # leaves a tree sampler spends on empty regions (see _sample)
         self._started = False
+        self._stream_on = False  # the next frame is the first after the camera opened
+        self._tables: asyncio.Future[tuple[Any, np.ndarray]] | None = None
 
     # ---- lifecycle ----------------------------------------------------------------------------
     async def start(self) -> None:
-        """Open the camera and build the per-calibration tables (remap tables take ~1 s)."""
-        from device.burst import BracketPlanner, field_of_view_mask
-        from device.projection import Projector
+        """Open the camera; start building the per-calibration tables in a worker thread.
+
+        The first burst is captured while the tables load (or, on a cold start, are built: seconds),
+        and :meth:`step` waits for them only before fusion. The first frame after stream-on gets
+        a long timeout (slow on real sensors; the simulator loads its lens tables then)."""
+        from device.burst import BracketPlanner
 
         await self.camera.open()
         fe = self.calibration.fisheye
@@ -175,25 +170,52 @@ class Pipeline:
             if not match:
                 raise InputError(f"calibration image size {fe.image_size} matches no camera mode", param="calibration")
             await self.camera.set_mode(match[0])
-        if self._projector is None:
-            cfg = self.config
-            self._projector, self._fov_mask = await asyncio.gather(
-                asyncio.to_thread(Projector, self.calibration, equirect_height=cfg.equirect_height,
-                                  nside=cfg.nside, lower=cfg.lower, cache_dir=cfg.cache_dir),
-                asyncio.to_thread(field_of_view_mask, fe),
-            )
-        # Warm-up: the first frame after stream-on is slow on real sensors (and the simulator
-        # builds its lens tables then); do not let it count against a burst's timeout.
-        await self.camera.capture(timeout=max(30.0, self.config.capture_timeout_s))
+        if self._projector is None and self._tables is None:
+            self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_tables))
         caps = self.camera.capabilities
         self._planner = BracketPlanner(caps.exposure_range, max_exposures=self.config.max_exposures,
                                        ev_step=self.config.ev_step, gain=self.config.gain)
+        self._stream_on = True
+        self._started = True
+
+    def _build_tables(self) -> tuple[Any, np.ndarray]:
+        """Projector (remap tables: from ``cache_dir`` when built before) and field-of-view mask;
+        then one projection of a black frame and one sampling of a small map, so the numba
+        kernels are loaded (from numba's cache) here, in parallel with the first burst, rather
+        than inside the first frame's processing; the fusion and preview modules are imported."""
+        import cv2  # noqa: F401  (tone_map)
+
+        import device.hdr.fusion  # noqa: F401
+        from device.burst import field_of_view_mask
+        from device.projection import Projector
+
+        cfg, fe = self.config, self.calibration.fisheye
+        assert fe is not None
+        projector = Projector(self.calibration, equirect_height=cfg.equirect_height, nside=cfg.nside,
+                              lower=cfg.lower, cache_dir=cfg.cache_dir)
+        mask = field_of_view_mask(fe)
+        w, h = fe.image_size
+        projector.project(np.zeros((h, w, 3), np.float32), valid=mask)
+        self._make_sampler(cfg.sampler).sample(np.ones((8, 16, 3), np.float32), 4)
+        return projector, mask
+
+    async def _ensure_tables(self) -> None:
+        """Wait for the tables (started by :meth:`start`, or now after a geometry change)."""
+        if self._projector is None:
+            if self._tables is None:
+                self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_tables))
+            task = self._tables
+            try:
+                self._projector, self._fov_mask = await asyncio.shield(task)
+            finally:
+                if task.done():
+                    self._tables = None
         if self._sampler is None:
             self._sampler = self._make_sampler(self.config.sampler)
-        self._started = True
 
     async def stop(self) -> None:
         self._started = False
+        self._current_exposure = None  # a reopened camera starts from its default exposure
         await self.camera.close()
 
     async def reopen(self) -> None:
@@ -211,7 +233,7 @@ class Pipeline:
             self._sampler = self._make_sampler(config.sampler)
             self._last_sampled = None
         if (config.equirect_height, config.nside, config.lower) != (old.equirect_height, old.nside, old.lower):
-            self._projector = None
+            self._projector, self._tables = None, None  # rebuilt (in a thread) by the next step()
         if self._planner is not None:
             self._planner.max_exposures = config.max_exposures
             self._planner.ev_step = config.ev_step
@@ -232,19 +254,22 @@ class Pipeline:
 
         if not self._started:
             await self.start()
-        if self._projector is None:  # geometry changed by reconfigure()
-            await self.start()
         t0 = time.perf_counter()
         prev = self._prev
         exposures = self._planner.plan(*((prev[0],) if prev else ()),
                                        saturated=prev[1] if prev else None, mask=self._fov_mask)
         exposures = order_exposures(exposures, self._current_exposure)
+        first = max(30.0, self.config.capture_timeout_s) if self._stream_on else None
         frames = await capture_burst(self.camera, exposures, gain=self.config.gain,
-                                     timeout=self.config.capture_timeout_s)
+                                     timeout=self.config.capture_timeout_s, first_timeout=first)
+        self._stream_on = False
         self._current_exposure = exposures[-1]
         t1 = time.perf_counter()
+        await self._ensure_tables()  # built in parallel with the burst (or after reconfigure())
+        t2 = time.perf_counter()
         result = await asyncio.to_thread(self._process, frames, prev is None)
-        result.timings = {"capture": t1 - t0, **result.timings, "total": time.perf_counter() - t0}
+        result.timings = {"capture": t1 - t0, "tables_wait": t2 - t1, **result.timings,
+                          "total": time.perf_counter() - t0}
         self._update_stats(result)
         self.latest = result
         return result

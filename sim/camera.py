@@ -13,6 +13,14 @@ the old exposure and gain in their metadata. Sequence numbers and the clock cont
 close/open. With ``realtime=True`` frames are paced at the frame rate (``asyncio.sleep``);
 by default they are returned as fast as they are computed.
 
+Read-ahead. Because of that latency, once frame ``s`` is out the exposure and gain of frames
+``s + 1 .. s + k`` are already fixed (a new ``apply()`` lands at ``s + 1 + k`` at the earliest),
+so the camera starts computing those frames in worker threads while the caller works, up to the
+frame where the last requested control lands (the frames a burst waits for). A read-ahead frame
+is used only if the frame finally captured has exactly the same sequence, time, controls and
+mode and no fault touched it, so the pixels are the same as without read-ahead (same inputs, same
+per-frame noise seed). No read-ahead while a fault is armed or with ``latency_frames=0``.
+
 Ground truth: :meth:`SimCamera.truth_calibration`, :meth:`truth_radiance`,
 :meth:`render_radiance_image`, :attr:`scene`, :attr:`sensitivity`, :attr:`lens`, :attr:`sensor`.
 Deterministic for a seed: frame noise comes from ``default_rng((seed, sequence))``.
@@ -24,6 +32,7 @@ import asyncio
 import copy
 import os
 import time
+from typing import Any
 
 import numpy as np
 
@@ -59,6 +68,11 @@ DEFAULT_MODES: tuple[Mode, ...] = (
 )
 
 
+def _retrieve(fut: asyncio.Future[np.ndarray]) -> None:
+    if not fut.cancelled():
+        fut.exception()  # an unused read-ahead frame's error is not worth a warning
+
+
 class SimCamera(Camera):
     """The simulated probe (see the module docstring).
 
@@ -72,6 +86,9 @@ class SimCamera(Camera):
     scene_scale : multiplies the scene's radiance (truth included).
     sensor : noise model; ``SensorModel()`` by default (sensitivity 1e4 e- per unit x s).
     shared_data : where named scenarios find ``envmaps/`` (default ``../shared/data``).
+    read_ahead : compute frames whose controls are fixed in worker threads (module docstring).
+    cache_dir : keep the lens render matrices on disk there (building one takes ~1 s; the
+        service passes its state cache, so a restarted simulated probe loads them).
     """
 
     name = "sim"
@@ -81,7 +98,8 @@ class SimCamera(Camera):
                  sensor: SensorModel | None = None, modes: tuple[Mode, ...] = DEFAULT_MODES,
                  exposure_range: tuple[float, float] = (1e-5, 1.0),
                  gain_range: tuple[float, float] = (1.0, 16.0),
-                 shared_data: str | os.PathLike[str] | None = None) -> None:
+                 shared_data: str | os.PathLike[str] | None = None, read_ahead: bool = True,
+                 cache_dir: str | os.PathLike[str] | None = None) -> None:
         if not isinstance(scene, Scene):
             from .scenarios import load_scene
 
@@ -96,12 +114,17 @@ class SimCamera(Camera):
         self.realtime = bool(realtime)
         self.sensor = sensor or SensorModel()
         self.faults = FaultPlan()
+        self._board: tuple[Any, float] | None = None  # (sim.board.BoardSchedule, start time)
         self._caps = Capabilities(exposure_range=exposure_range, gain_range=gain_range,
                                   modes=tuple(modes), has_frame_metadata=True,
                                   control_latency_frames=int(latency_frames),
                                   model="lightprobe-sim", serial=f"sim-{seed}")
         self._mode = self._caps.modes[0]
         self._lenses: dict[tuple[int, int], SimLens] = {}
+        self.cache_dir = None if cache_dir is None else os.fspath(cache_dir)
+        self.read_ahead = bool(read_ahead)
+        self._ahead: dict[tuple[object, ...], asyncio.Future[np.ndarray]] = {}  # read-ahead frames
+        self._last_landing = -1  # sequence on which the last apply() lands
         self._open = False
         self._unplugged_until = 0.0
         self._lock = asyncio.Lock()
@@ -127,6 +150,7 @@ class SimCamera(Camera):
 
     async def close(self) -> None:
         self._open = False
+        self._ahead.clear()
 
     @property
     def capabilities(self) -> Capabilities:
@@ -145,6 +169,7 @@ class SimCamera(Camera):
         self.check_controls(controls)
         self._require_open()
         self._pending.append((self._seq + self._caps.control_latency_frames, controls))
+        self._last_landing = self._seq + self._caps.control_latency_frames
 
     async def capture(self, timeout: float = 1.0) -> Frame:  # noqa: ASYNC109 - the protocol's signature
         async with self._lock:
@@ -158,7 +183,12 @@ class SimCamera(Camera):
             self._land_controls(seq)
             exposure, gain, mode = self._exposure, self._gain, self._mode
             self._advance(1)
-            data = await asyncio.to_thread(self._make_frame, t, seq, exposure, gain, mode, fx.lens_cap)
+            ahead = self._ahead.pop((seq, t, exposure, gain, mode), None)
+            if ahead is not None and not fx.lens_cap:
+                data = await ahead
+            else:
+                data = await asyncio.to_thread(self._make_frame, t, seq, exposure, gain, mode, fx.lens_cap)
+            self._read_ahead()
             if fx.hot_pixels:
                 white = 255 if mode.format is PixelFormat.RGB8 else int(raw_levels(mode.format)[1])
                 FaultPlan.apply_hot_pixels(data, fx.hot_pixels, white)
@@ -179,6 +209,34 @@ class SimCamera(Camera):
     def _advance(self, frames: int) -> None:
         self._seq += frames
         self._t += frames / self._mode.max_fps
+
+    def _read_ahead(self) -> None:
+        """Start computing the frames whose controls are already fixed (module docstring)."""
+        k = self._caps.control_latency_frames
+        if k < 1 or not self.read_ahead or self.faults.active or not self._open:
+            self._ahead.clear()
+            return
+        self._ahead = {key: f for key, f in self._ahead.items() if key[0] >= self._seq}  # type: ignore[operator]
+        # Replay _land_controls / _advance on copies, frame by frame, exactly as capture() will
+        seq, t, exposure, gain, pending = self._seq, self._t, self._exposure, self._gain, list(self._pending)
+        for _ in range(k):
+            if seq > self._last_landing:
+                break  # nobody waits for a control to land there
+            still = []
+            for eff, c in pending:
+                if eff <= seq:
+                    exposure = exposure if c.exposure_s is None else float(c.exposure_s)
+                    gain = gain if c.gain is None else float(c.gain)
+                else:
+                    still.append((eff, c))
+            pending = still
+            key = (seq, t, exposure, gain, self._mode)
+            if key not in self._ahead:
+                fut = asyncio.ensure_future(
+                    asyncio.to_thread(self._make_frame, t, seq, exposure, gain, self._mode, False))
+                fut.add_done_callback(_retrieve)
+                self._ahead[key] = fut
+            seq, t = seq + 1, t + 1 / self._mode.max_fps
 
     def _land_controls(self, seq: int) -> None:
         """Apply the pending requests whose landing frame has come (in request order)."""
@@ -221,10 +279,31 @@ class SimCamera(Camera):
             w, h = lens.size
             irr = np.zeros((h, w, 3), np.float32)
         else:
-            rad = lens.render(self._scene.radiance_equirect(t, exposure))
+            eq = self._scene.radiance_equirect(t, exposure)
+            if self.cache_dir is not None:
+                from ._lenscache import load_render_matrix
+
+                load_render_matrix(lens, eq.shape[0], self.cache_dir)
+            rad = lens.render(eq)
+            if self._board is not None:  # a technician's checkerboard in front (show_board)
+                rad = self._board[0].composite(rad, t - self._board[1], lens)
             irr = rad * lens.vignetting_image()[..., None]
         rng = np.random.default_rng((self.seed, seq))
         return self.sensor.capture(irr, exposure, gain, mode.format, rng)
+
+    @property
+    def board_schedule(self) -> Any:
+        """The :class:`sim.board.BoardSchedule` shown now (``show_board``), or None."""
+        return None if self._board is None else self._board[0]
+
+    def show_board(self, schedule: Any) -> None:
+        """Show a technician's checkerboard (a :class:`sim.board.BoardSchedule`) over the scene
+        from the next frame on, its clock starting then; ``None`` takes it away. Frames read
+        ahead before the change are dropped."""
+        self._board = None if schedule is None else (schedule, self._t)
+        ahead = getattr(self, "_ahead", None)
+        if ahead is not None:
+            ahead.clear()
 
     # -- ground truth -----------------------------------------------------------------------------
     def lens_for(self, mode: Mode | None = None) -> SimLens:

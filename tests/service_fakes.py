@@ -246,7 +246,7 @@ def _serve_with_fakes(argv: list[str]) -> int:
     import device.service.cli as cli
 
     make_camera, make_pipeline = fake_factories()
-    cli.camera_factory = lambda spec, scene: make_camera  # type: ignore[assignment]
+    cli.camera_factory = lambda spec, scene, cache_dir=None: make_camera  # type: ignore[assignment]
     cli.pipeline_factory = lambda state_dir, probe_id: make_pipeline  # type: ignore[assignment]
     return cli.main(argv)
 

@@ -16,7 +16,7 @@ from device.burst import (
     order_exposures,
     rates_from_frame,
 )
-from drivers.base import Capabilities, CaptureTimeout, Frame, PixelFormat
+from drivers.base import Capabilities, CaptureTimeout, Controls, Frame, PixelFormat
 from sim.camera import SimCamera
 
 RANGE = (1e-5, 1.0)
@@ -121,10 +121,53 @@ async def test_capture_accepts_only_frames_showing_the_requested_exposure() -> N
         frames = await capture_burst(cam, exps, gain=1.0, timeout=60)
     assert [f.meta.exposure_s for f in frames] == exps
     seqs = [f.meta.sequence for f in frames]
-    # Each exposure lands 3 frames after its request: 3 stale frames dropped before each
-    assert seqs == [start + 3, start + 7, start + 11]
+    # Pipelined: one request per frame, each lands 3 frames later; only the first 3 are stale
+    assert seqs == [start + 3, start + 4, start + 5]
+    assert cam.sequence == start + 6  # n + latency frames in all
     means = [float(f.data.mean()) for f in frames]
     assert means[0] < means[1] < means[2]
+
+
+async def test_sequential_capture_waits_for_each_exposure() -> None:
+    cam = SimCamera("lebombo", seed=1, latency_frames=3)
+    async with cam:
+        exps = [0.002, 0.008, 0.032]
+        start = cam.sequence
+        frames = await capture_burst(cam, exps, gain=1.0, timeout=60, pipelined=False)
+    assert [f.meta.exposure_s for f in frames] == exps
+    # Each exposure lands 3 frames after its request: 3 stale frames dropped before each
+    assert [f.meta.sequence for f in frames] == [start + 3, start + 7, start + 11]
+
+
+async def test_pipelined_burst_reasks_a_request_the_camera_lost() -> None:
+    class LosesOneRequest(SimCamera):
+        lost = False
+
+        async def apply(self, controls: Controls) -> None:
+            if controls.exposure_s == 0.008 and not self.lost:
+                self.lost = True  # dropped on the floor, like a request that missed its frame
+                return
+            await super().apply(controls)
+
+    cam = LosesOneRequest("lebombo", seed=1, latency_frames=2)
+    async with cam:
+        exps = [0.002, 0.008, 0.032]
+        frames = await capture_burst(cam, exps, gain=1.0, timeout=60)
+    assert cam.lost
+    assert [f.meta.exposure_s for f in frames] == exps  # in the requested order
+    seqs = [f.meta.sequence for f in frames]
+    assert seqs[1] > seqs[2]  # 0.008 landed after 0.032, on the repeated request
+
+
+async def test_pipelined_sweep_costs_n_plus_latency_frames() -> None:
+    cam = SimCamera("lebombo", seed=1, latency_frames=2)
+    planner = BracketPlanner(cam.capabilities.exposure_range)
+    sweep = planner.plan(None)
+    async with cam:
+        start = cam.sequence
+        frames = await capture_burst(cam, sweep, gain=1.0, timeout=60)
+    assert len(frames) == len(sweep) == 6
+    assert cam.sequence - start == len(sweep) + 2, (start, cam.sequence)
 
 
 async def test_exposure_that_never_lands_times_out() -> None:
@@ -215,3 +258,20 @@ def test_a_small_lamp_carrying_much_of_the_light_is_not_clipped() -> None:
     rates[20, 21] = 200.0
     exps = BracketPlanner(RANGE).plan(rates)
     assert 400.0 * min(exps) == pytest.approx(0.8, rel=1e-6)
+
+
+
+async def test_simulator_read_ahead_gives_the_same_frames() -> None:
+    """The simulator computes frames whose controls are fixed in worker threads: the pixels
+    must be exactly those of a camera computing every frame on demand."""
+    exps = [1e-4, 4e-3, 0.03, 0.2]
+    out = []
+    for read_ahead in (True, False):
+        cam = SimCamera("flashlight", seed=3, latency_frames=2, read_ahead=read_ahead)
+        async with cam:
+            frames = await capture_burst(cam, exps, gain=2.0, timeout=60)
+            frames += await capture_burst(cam, exps[::-1], gain=1.0, timeout=60, pipelined=False)
+        out.append(frames)
+    for a, b in zip(*out, strict=True):
+        assert (a.meta.sequence, a.meta.exposure_s, a.meta.gain) == (b.meta.sequence, b.meta.exposure_s, b.meta.gain)
+        np.testing.assert_array_equal(a.data, b.data)

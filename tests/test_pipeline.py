@@ -103,3 +103,27 @@ async def test_tree_sampler_publishes_exactly_the_requested_useful_lights():
         assert len(r.lights) == 100
         assert (r.lights.rgb.sum(axis=1) > 0).all()
         np.testing.assert_allclose(r.lights.total, equirect_integral(r.equirect), rtol=1e-5)
+
+
+async def test_reopen_after_a_fault_keeps_tables_and_the_last_bracket():
+    """After a camera fault the pipeline reopens with its tables and plans the first burst from
+    the last good frame (no metering sweep), pipelined: n exposures cost n + latency frames."""
+    cam = SimCamera("lebombo", seed=4)
+    pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(sampler="median-cut", light_count=16))
+    await pipe.start()
+    try:
+        sweep = await pipe.step()
+        planned = await pipe.step()
+        projector = pipe._projector
+        await pipe.stop()  # what the service does on CameraDisconnected
+        await pipe.start()
+        seq0 = cam.sequence
+        again = await pipe.step()
+    finally:
+        await pipe.stop()
+    assert len(sweep.exposures) == 6
+    assert min(sweep.exposures) == cam.capabilities.exposure_range[0]
+    assert pipe._projector is projector
+    assert sorted(again.exposures) == pytest.approx(sorted(planned.exposures), rel=0.25)
+    assert cam.sequence - seq0 == len(again.exposures) + cam.capabilities.control_latency_frames
+    assert not again.skipped or again.lights.frame == again.frame

@@ -371,3 +371,37 @@ async def _poll_status(c: aiohttp.ClientSession, api: str, cond: Any, within: fl
         if time.monotonic() > t_end:
             raise AssertionError(f"status never matched: {st}")
         await asyncio.sleep(0.05)
+
+
+async def test_api_answers_while_the_pipeline_is_still_starting(tmp_path: Path) -> None:
+    """The server listens before the camera and pipeline exist (imports, tables and the first
+    burst happen behind it): /status says "starting", /healthz answers 503, and both the camera
+    and the pipeline are made off the event loop."""
+    import threading
+
+    make_camera, make_pipeline = fake_factories()
+    threads: list[str] = []
+    release = threading.Event()
+
+    def slow_camera() -> FakeCamera:
+        threads.append(threading.current_thread().name)
+        release.wait(10.0)  # e.g. importing a driver or the simulator
+        return make_camera()
+
+    async with running_service(service_config(tmp_path), slow_camera, make_pipeline) as s, \
+            aiohttp.ClientSession() as c:
+        code, st = await _get_json(c, s.api + "/status")
+        assert code == 200
+        assert st["health"] == "starting"
+        assert st["camera"]["state"] == "starting"
+        assert st["frames"] == 0
+        code, hz = await _get_json(c, s.api + "/healthz")
+        assert code == 503
+        assert hz["ok"] is False
+        assert s.state.camera is None
+        release.set()
+        async with c.ws_connect(s.api + "/stream") as ws:
+            msg = await ws.receive(timeout=10.0)
+        assert msg.type == aiohttp.WSMsgType.TEXT
+        assert threads
+        assert threads[0] != threading.main_thread().name

@@ -1,4 +1,5 @@
-"""Small pure parts of the service: tone mapping edge cases, sd_notify, token file, TOML writer."""
+"""Small pure parts of the service: the tone mapper (device.tonemap, both previews), sd_notify,
+token file, TOML writer."""
 
 from __future__ import annotations
 
@@ -12,28 +13,46 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.service.api import tonemap_srgb
 from device.service.auth import check_bearer, load_or_create_token, read_token
 from device.service.config import SCHEMA, ServiceConfig, dump_toml
 from device.service.notify import Notifier
+from device.tonemap import log_average_key, tone_map
 
 
 def test_tonemap_degenerate_inputs() -> None:
     black = np.zeros((8, 16, 3), np.float32)
-    assert tonemap_srgb(black).max() == 0
+    assert tone_map(black).max() == 0
     nan = np.full((8, 16, 3), np.nan, np.float32)
-    assert tonemap_srgb(nan).max() == 0  # NaN from a sensor is treated as 0
+    assert tone_map(nan).max() == 0  # NaN from a sensor is treated as 0
     hot = black.copy()
     hot[3, 5] = 1e6
-    out = tonemap_srgb(hot)
+    out = tone_map(hot)
     assert out.dtype == np.uint8
     assert out[3, 5].min() > 0
     assert out.sum() == out[3, 5].sum()
     neg = np.full((8, 16, 3), -1e-6, np.float32)  # lossy EXR negatives
-    assert tonemap_srgb(neg).max() == 0
+    assert tone_map(neg).max() == 0
     ramp = np.linspace(0, 1e4, 8 * 16 * 3, dtype=np.float32).reshape(8, 16, 3)
-    t = tonemap_srgb(ramp)[..., 1].ravel()
+    t = tone_map(ramp)[..., 1].ravel()
     assert np.all(np.diff(t.astype(int)) >= 0)  # monotone
+
+
+def test_tonemap_preserves_hue_and_ignores_a_sun_in_the_key() -> None:
+    """Luminance Reinhard scales all channels of a pixel alike (hue kept); the trimmed
+    log-average key does not let 0.5% of very bright pixels darken the rest of the view."""
+    rng = np.random.default_rng(3)
+    sky = (rng.uniform(0.2, 2.0, (64, 128, 1)) * np.array([0.3, 0.5, 1.0])).astype(np.float32)
+    out = tone_map(sky).astype(np.float64)
+    lin = np.where(out / 255 <= 0.04045, out / 255 / 12.92, ((out / 255 + 0.055) / 1.055) ** 2.4)
+    ok = (out > 20).all(axis=-1) & (out < 250).all(axis=-1)
+    ratio = lin[ok] / lin[ok][:, 2:3]
+    np.testing.assert_allclose(ratio, np.broadcast_to([0.3, 0.5, 1.0], ratio.shape), rtol=0.06)
+    sunny = sky.copy()
+    sunny.reshape(-1, 3)[rng.choice(sunny.shape[0] * sunny.shape[1], 40, replace=False)] = 1e6
+    k0 = log_average_key(sky @ np.array([0.2126, 0.7152, 0.0722], np.float32))
+    k1 = log_average_key(sunny @ np.array([0.2126, 0.7152, 0.0722], np.float32))
+    assert abs(np.log(k1 / k0)) < 0.05, (k0, k1)
+    assert np.abs(tone_map(sunny).astype(int) - tone_map(sky).astype(int))[sunny[..., 0] < 1e5].max() <= 8
 
 
 def test_notifier_abstract_socket_and_watchdog_interval() -> None:
@@ -112,3 +131,44 @@ def test_mdns_interfaces_follow_the_listen_address() -> None:
     assert _mdns_interfaces([], "0.0.0.0") == []  # all interfaces
     assert _mdns_interfaces([], "probe.local") == []
     assert _mdns_interfaces(["192.168.1.5"], "0.0.0.0") == ["192.168.1.5"]  # configured wins
+
+
+def test_numba_cache_goes_to_the_state_dir_only_when_the_package_is_read_only(tmp_path: Path) -> None:
+    from device.service.cli import numba_cache_dir
+
+    state = tmp_path / "state"
+    read_only = tmp_path / "missing-package"  # os.access(..., W_OK) is False (root ignores modes)
+    assert numba_cache_dir({}, state, read_only) == str(state / "cache" / "numba")
+    assert numba_cache_dir({"NUMBA_CACHE_DIR": "/elsewhere"}, state, read_only) is None  # the unit's wins
+    writable = tmp_path / "pkg"
+    (writable / "__pycache__").mkdir(parents=True)
+    assert numba_cache_dir({}, state, writable) is None  # numba's in-tree cache works
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_numba_cache_dir_really_caches_the_service_kernels(tmp_path: Path) -> None:
+    """With NUMBA_CACHE_DIR (what the unit file and a read-only install get), the projection
+    kernel is compiled once into that directory and loaded from it by the next process."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    code = ("import numpy as np\n"
+            "from device.projection.kernels import _spmv_rgb\n"
+            "out = np.zeros((1, 3), np.float32)\n"
+            "_spmv_rgb(np.array([0, 1], np.int32), np.array([0], np.int32), np.array([2.0], np.float32),"
+            " np.ones((1, 3), np.float32), out)\n"
+            "assert out[0, 0] == 2.0\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "NUMBA_DEBUG_CACHE": "1",
+           "PYTHONPATH": str(root)}
+    runs = [subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True,
+                           timeout=200) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    files = [p.name for p in (tmp_path / "numba").rglob("*") if p.suffix in (".nbi", ".nbc")]
+    assert any(f.startswith("kernels._spmv_rgb") for f in files), files
+    assert "data saved" in runs[0].stdout, runs[0].stdout[-2000:]
+    assert "data loaded" in runs[1].stdout, runs[1].stdout[-2000:]
+    assert "data saved" not in runs[1].stdout, runs[1].stdout[-2000:]

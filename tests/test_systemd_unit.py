@@ -58,3 +58,6 @@ def test_required_settings() -> None:
     assert set(k["RestrictAddressFamilies"][0].split()) == {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"}
     assert "@system-service" in k["SystemCallFilter"]
     assert "lightprobe serve" in k["ExecStart"][0]
+    # numba's kernel cache must be writable under ProtectSystem=strict: the state directory
+    env = dict(v.split("=", 1) for v in k["Environment"])
+    assert env["NUMBA_CACHE_DIR"].startswith("%S/" + k["StateDirectory"][0] + "/"), env

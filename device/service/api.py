@@ -21,7 +21,7 @@ from device.service.app import STATE, ServiceState
 from device.service.config import RESTART_KEYS, SAMPLERS, save_config
 from device.service.errors import ApiError
 
-__all__ = ["add_routes", "tonemap_srgb"]
+__all__ = ["add_routes"]
 
 log = logging.getLogger(__name__)
 
@@ -30,29 +30,6 @@ STATIC_FILES = {"index.html": "text/html", "app.js": "text/javascript", "style.c
 
 
 # ---- pure helpers ---------------------------------------------------------------------------------
-def tonemap_srgb(img: np.ndarray, exposure_quantile: float = 0.9) -> np.ndarray:
-    """Tone-map a linear float image to sRGB uint8 for display.
-
-    Scales so that the ``exposure_quantile`` of luminance maps to 0.5, applies Reinhard's global
-    operator L/(1+L) on luminance (Reinhard et al. 2002, eq. 3) and the sRGB transfer curve.
-    NaN/inf and negative values (lossy EXR) are treated as 0; an all-black image stays black.
-    Float32 in, accumulations in float64 for the quantile.
-    """
-    x = np.nan_to_num(np.asarray(img, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    x = np.maximum(x, 0.0)
-    lum = x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    positive = lum[lum > 0]
-    if positive.size == 0:
-        return np.zeros(x.shape, np.uint8)
-    key = float(np.quantile(positive.astype(np.float64), exposure_quantile))
-    x *= np.float32(0.5 / max(key, 1e-30))
-    lum_s = x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    scale = 1.0 / (1.0 + lum_s)  # Reinhard eq. 3
-    y = np.clip(x * scale[..., None], 0.0, 1.0)
-    srgb = np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
-    return (srgb * 255.0 + 0.5).astype(np.uint8)
-
-
 def _encode_jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
     import cv2
 
@@ -188,7 +165,9 @@ async def preview(request: web.Request) -> web.Response:
     if view == "fisheye":
         data = await _cached(st, "jpg-fisheye", _encode_jpeg, np.asarray(r.preview, np.uint8))
     else:
-        data = await _cached(st, "jpg-equirect", lambda m: _encode_jpeg(tonemap_srgb(m)), r.equirect)
+        from device.tonemap import tone_map  # the same operator as the fisheye preview
+
+        data = await _cached(st, "jpg-equirect", lambda m: _encode_jpeg(tone_map(m)), r.equirect)
     return web.Response(body=data, content_type="image/jpeg")
 
 
@@ -228,6 +207,9 @@ async def _apply_config(st: ServiceState, old: Any, new: Any) -> None:
     else:
         st.runner.set_config(new)
     name_changed = old.get("probe", "name") != new.get("probe", "name")
+    if st.advertiser is None and st.mdns_task is not None and not st.mdns_task.done():
+        with contextlib.suppress(TimeoutError, asyncio.CancelledError):  # still registering
+            await asyncio.wait_for(asyncio.shield(st.mdns_task), 5.0)
     if st.advertiser is not None and (name_changed or old.get("pipeline", "sampler") != new.get("pipeline", "sampler")):
         try:
             await st.advertiser.update(name=new.get("probe", "name"), sampler=new.get("pipeline", "sampler"))
@@ -249,19 +231,20 @@ async def stream(request: web.Request) -> web.StreamResponse:
     seen = 0
     try:
         while not ws.closed and not hub.closed:
-            waiter = asyncio.create_task(hub.wait_newer(seen))
-            done, _ = await asyncio.wait({waiter, reader}, return_when=asyncio.FIRST_COMPLETED)
-            if waiter not in done:
-                waiter.cancel()
-                break
-            version, payload = waiter.result()
-            if payload is None:
+            changed = hub.changed(seen)  # one future shared by all clients: no task per frame
+            if not changed.done():
+                await asyncio.wait({changed, reader}, return_when=asyncio.FIRST_COMPLETED)
+                if not changed.done():
+                    break  # the client went away
+            version, payload = hub.version, hub.payload
+            if payload is None or hub.closed:
                 break
             if seen and version > seen + 1:
                 st.ws_frames_skipped += version - seen - 1
             seen = version
-            try:
-                await asyncio.wait_for(ws.send_str(payload), float(st.config.get("service", "ws_send_timeout")))
+            try:  # the frame's bytes, encoded once for every client, sent as a text message
+                async with asyncio.timeout(float(st.config.get("service", "ws_send_timeout"))):
+                    await ws.send_frame(payload, WSMsgType.TEXT)
             except (TimeoutError, ConnectionResetError):
                 st.ws_dropped += 1
                 log.info("websocket client %s too slow: dropped", request.remote)

@@ -5,6 +5,12 @@ State lives on the app under typed :class:`aiohttp.web.AppKey` s. Each resource 
 ``cleanup_ctx`` entry, started in order and torn down in reverse, only if it started:
 camera -> pipeline task -> mDNS registration -> systemd notifier/watchdog; open WebSockets are
 closed (1001) on shutdown, before the cleanups run.
+
+Listen first. No start-up step holds the server: the camera is made and the pipeline built by
+the frame loop's task in worker threads (importing the simulator or a driver, numba, OpenCV and
+loading the projection tables take a while), and mDNS registration (~2 s of probing) runs as a
+task; ``/healthz`` and ``/status`` (``"health": "starting"``) answer from the moment the socket
+listens.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 import time
 import weakref
 from collections.abc import AsyncIterator, Callable
@@ -51,6 +58,32 @@ class ServiceState:
     config_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     version: str = VERSION
     started: float = field(default_factory=time.time)
+    make_camera: Callable[[], Any] | None = None
+    mdns_task: asyncio.Task[None] | None = None  # the mDNS registration while it runs
+    _camera_lock: threading.Lock = field(default_factory=threading.Lock)
+    _camera_error: Exception | None = None
+
+    def camera_or_make(self) -> Any:
+        """The camera, made now if nobody made it yet (blocking: call from a worker thread).
+        A bad camera spec (InputError) is remembered and raised again without retrying."""
+        from device.errors import InputError
+
+        with self._camera_lock:
+            if self._camera_error is not None:
+                raise self._camera_error
+            if self.camera is None and self.make_camera is not None:
+                try:
+                    self.camera = self.make_camera()
+                except InputError as e:
+                    self._camera_error = e
+                    raise
+            return self.camera
+
+    async def ensure_camera(self) -> Any:
+        """The camera, made off the loop if the pipeline has not made it yet (start-up)."""
+        if self.camera is not None:
+            return self.camera
+        return await asyncio.to_thread(self.camera_or_make)
 
 
 STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
@@ -116,34 +149,45 @@ async def headers_middleware(request: web.Request, handler: Handler) -> web.Stre
 
 
 # ---- cleanup contexts -----------------------------------------------------------------------------
-def _camera_ctx(make_camera: CameraFactory) -> Callable[[web.Application], AsyncIterator[None]]:
-    async def ctx(app: web.Application) -> AsyncIterator[None]:
-        st = app[STATE]
-        st.camera = make_camera()
-        try:
-            yield
-        finally:
+async def _camera_ctx(app: web.Application) -> AsyncIterator[None]:
+    """The camera is made by the pipeline task (off the loop, after the API listens: importing
+    the simulator or a driver takes a while); this entry closes it on shutdown if it exists."""
+    st = app[STATE]
+    try:
+        yield
+    finally:
+        if st.camera is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(st.camera.close(), 2.0)
 
-    return ctx
-
 
 def _warm_imports() -> None:
-    """Import the encoders once at startup, in a thread, so no request pays (and no request
-    stalls the loop on the import lock) for it later."""
+    """Import the encoders once, in a thread, so no request pays (and no request stalls the loop
+    on the import lock) for it later."""
     import cv2  # noqa: F401
 
     import device.imageio  # noqa: F401
 
 
-async def _pipeline_ctx(app: web.Application) -> AsyncIterator[None]:
-    st = app[STATE]
+async def _warm_after_first_frame(st: ServiceState) -> None:
+    """The encoders are needed only once a frame exists: import them after the first lights,
+    so they do not compete with the first frame for the interpreter."""
+    await st.runner.hub.wait_newer(0)
     await asyncio.to_thread(_warm_imports)
+
+
+async def _pipeline_ctx(app: web.Application) -> AsyncIterator[None]:
+    """Start the frame loop as a task and return at once: the server listens (``/healthz``,
+    ``/status`` say "starting") while imports, tables and the first burst happen behind it."""
+    st = app[STATE]
     st.runner.start()
+    warm = asyncio.create_task(_warm_after_first_frame(st), name="lightprobe-warm-imports")
     try:
         yield
     finally:
+        warm.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await warm
         await st.runner.stop()
 
 
@@ -175,7 +219,28 @@ def _mdns_interfaces(configured: list[str], host: str) -> list[str]:
     return [] if addr.is_unspecified else [str(addr)]
 
 
+async def _advertise(st: ServiceState, adv: Any) -> None:
+    """Register (mDNS probing takes ~2 s) in the background; then catch up with a name or
+    sampler change made while registering."""
+    try:
+        await adv.start()
+    except Exception as e:  # no multicast route must not stop the API
+        log.warning("mdns: cannot advertise: %s", e)
+        with contextlib.suppress(Exception):
+            await adv.close()
+        return
+    st.advertiser = adv
+    name, sampler = st.config.get("probe", "name"), st.config.get("pipeline", "sampler")
+    if (name, sampler) != (adv.info.name, adv.info.sampler):
+        try:
+            await adv.update(name=name, sampler=sampler)
+        except Exception as e:
+            log.warning("mdns: re-announce failed: %s", e)
+
+
 async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
+    """Advertise without holding up the server: registration runs as a task (the API answers
+    meanwhile); shutdown cancels it or sends the goodbyes."""
     st = app[STATE]
     cfg = st.config
     if not cfg.get("mdns", "enabled"):
@@ -188,20 +253,17 @@ async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
                     sampler=cfg.get("pipeline", "sampler"),
                     interfaces=_mdns_interfaces(list(cfg.get("mdns", "interfaces")), app[HOST]))
     adv = Advertiser(info)
-    try:
-        await adv.start()
-        st.advertiser = adv
-    except Exception as e:  # no multicast route must not stop the API
-        log.warning("mdns: cannot advertise: %s", e)
-        with contextlib.suppress(Exception):
-            await adv.close()
-        yield
-        return
+    task = st.mdns_task = asyncio.create_task(_advertise(st, adv), name="lightprobe-mdns-register")
     try:
         yield
     finally:
+        if not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
         st.advertiser = None
-        await asyncio.wait_for(adv.close(), 2.0)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(adv.close(), 2.0)
 
 
 async def _notify_ctx(app: web.Application) -> AsyncIterator[None]:
@@ -239,7 +301,7 @@ async def _watchdog(st: ServiceState, interval: float) -> None:
 def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline: PipelineFactory, *,
                token: str, probe_id: str, port: int | None = None, host: str | None = None,
                notifier: Notifier | None = None,
-               backoff: tuple[float, float] = (0.5, 8.0)) -> web.Application:
+               backoff: tuple[float, float] = (0.5, 1.0)) -> web.Application:
     """Build the service. ``make_camera()`` returns an unopened camera; ``make_pipeline(camera,
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
@@ -254,19 +316,21 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     app[HOST] = str(host if host is not None else config.get("service", "host"))
     state_holder: dict[str, ServiceState] = {}
 
-    def build(cfg: ServiceConfig) -> PipelineLike:
-        return make_pipeline(state_holder["s"].camera, cfg)
+    def build(cfg: ServiceConfig) -> PipelineLike:  # runs in a worker thread (Runner)
+        return make_pipeline(state_holder["s"].camera_or_make(), cfg)
 
     reconf = getattr(make_pipeline, "reconfigure", None)  # optional: apply config in place
     runner = Runner(build, config, backoff_initial=backoff[0], backoff_max=backoff[1], reconfigure=reconf)
     st = ServiceState(config=config, token=token, probe_id=probe_id, runner=runner,
-                      notifier=notifier or Notifier({}))
+                      notifier=notifier or Notifier({}), make_camera=make_camera)
     state_holder["s"] = st
     app[STATE] = st
     api.add_routes(app, Path(__file__).parent / "static")
     from device.service import q2tree_api  # GET /api/v1/q2tree (binary tree for host-side merging)
 
     q2tree_api.add_routes(app)
-    app.cleanup_ctx.extend([_camera_ctx(make_camera), _pipeline_ctx, _mdns_ctx, _notify_ctx])
+    from device.service import calibration_api  # /api/v1/calibration (live calibration)
+    calibration_api.add_routes(app, getattr(make_pipeline, "state_dir", None))
+    app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)
     return app

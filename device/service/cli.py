@@ -71,8 +71,9 @@ def load_service_config(config_arg: str | None, state_dir: Path, env: dict[str, 
     return ServiceConfig(cfg.data, target)
 
 
-def camera_factory(spec: str, scene: str | None) -> Any:
-    """An unopened camera for ``--camera``; the simulator needs ``--scene``."""
+def camera_factory(spec: str, scene: str | None, cache_dir: Path | None = None) -> Any:
+    """An unopened camera for ``--camera``; the simulator needs ``--scene`` (and keeps its lens
+    tables in ``cache_dir`` when given)."""
     from device.errors import InputError
 
     def make() -> Any:
@@ -80,7 +81,7 @@ def camera_factory(spec: str, scene: str | None) -> Any:
             from sim.camera import SimCamera
             from sim.scenarios import load_scene
 
-            return SimCamera(load_scene(scene or "flashlight"))
+            return SimCamera(load_scene(scene or "flashlight"), cache_dir=cache_dir)
         try:
             from drivers.discovery import open_camera
         except ImportError as e:
@@ -187,6 +188,21 @@ def _exit_deadline(seconds: float) -> None:
     t.start()
 
 
+def numba_cache_dir(env: dict[str, str], state_dir: Path, package_dir: Path | None = None) -> str | None:
+    """Where numba should keep its compiled kernels, or None to leave numba's default.
+
+    numba caches next to the sources (``__pycache__``); under systemd's ``ProtectSystem=strict``
+    the package is read-only and numba's per-user fallback (``~/.cache``) is too, so every start
+    would recompile every kernel (seconds each). Then the cache goes to ``STATE_DIR/cache/numba``.
+    An explicit ``NUMBA_CACHE_DIR`` (the unit file sets one) always wins."""
+    if env.get("NUMBA_CACHE_DIR"):
+        return None
+    pkg = package_dir or Path(__file__).resolve().parent.parent
+    probe = pkg / "__pycache__"
+    writable = os.access(probe if probe.exists() else pkg, os.W_OK)
+    return None if writable else str(state_dir / "cache" / "numba")
+
+
 async def serve(a: argparse.Namespace) -> int:
     from aiohttp import web
 
@@ -205,7 +221,7 @@ async def serve(a: argparse.Namespace) -> int:
     sock = _bind(host, port)
     port = sock.getsockname()[1]
     notifier = Notifier(env)
-    app = create_app(cfg, camera_factory(a.camera, a.scene), pipeline_factory(state_dir, probe_id),
+    app = create_app(cfg, camera_factory(a.camera, a.scene, state_dir / "cache"), pipeline_factory(state_dir, probe_id),
                      token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
                      backoff=(a.backoff_initial, a.backoff_max))
     runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=0.5, access_log=None)
@@ -216,6 +232,14 @@ async def serve(a: argparse.Namespace) -> int:
     print(f"lightprobe: dashboard {url}", flush=True)
     print(f"lightprobe: API token {token}  (state dir {state_dir.resolve()})", flush=True)
     notifier.ready(f"serving on {url}")
+    from device.errors import InputError
+    from device.service.app import STATE
+
+    try:  # made off the loop while the API already answers; a bad --camera/--scene still exits 2
+        await app[STATE].ensure_camera()
+    except InputError:
+        await asyncio.wait_for(runner.cleanup(), 2.7)
+        raise
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -246,7 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="log format on stderr (auto: text on a terminal, JSON lines otherwise)")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     p.add_argument("--backoff-initial", type=float, default=0.5, help="first reconnect delay, s")
-    p.add_argument("--backoff-max", type=float, default=8.0, help="longest reconnect delay, s")
+    p.add_argument("--backoff-max", type=float, default=1.0,
+                   help="longest reconnect delay, s (default 1: a returning camera is back in use within 1 s)")
     return p
 
 
@@ -255,6 +280,10 @@ def main(argv: list[str]) -> int:
 
     a = build_parser().parse_args(argv)
     _setup_logging(a.log_format, a.log_level)
+    # Before anything imports numba (it reads its configuration once, at import)
+    cache = numba_cache_dir(dict(os.environ), state_dir_from(a.state_dir, dict(os.environ)))
+    if cache is not None:
+        os.environ["NUMBA_CACHE_DIR"] = cache
     if a.port is not None and not 0 <= a.port <= 65535:
         print(f"lightprobe: error: --port must be in [0, 65535], got {a.port}", file=sys.stderr)
         return 2

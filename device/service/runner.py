@@ -20,7 +20,7 @@ import dataclasses
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -47,34 +47,60 @@ class PipelineLike(Protocol):
 
 
 class FrameHub:
-    """A single-slot broadcast: ``publish`` replaces the payload, waiters get the newest one."""
+    """A single-slot broadcast: ``publish`` replaces the payload, waiters get the newest one.
+
+    The payload is the light set's JSON, encoded to UTF-8 bytes once per frame (in a worker
+    thread); every WebSocket client sends those same bytes (no per-client JSON or encoding
+    work). Waiting costs no task per client and frame: all clients wait on one shared future
+    that ``publish`` resolves, then read the newest version.
+    """
 
     def __init__(self) -> None:
         self.version = 0
-        self.payload: str | None = None
-        self._cond = asyncio.Condition()
+        self.payload: bytes | None = None
         self.closed = False
+        self._next: asyncio.Future[None] | None = None
 
-    async def publish(self, payload: str) -> None:
-        async with self._cond:
-            self.version += 1
-            self.payload = payload
-            self._cond.notify_all()
+    def changed(self, seen: int) -> asyncio.Future[None]:
+        """A future that is done once a version newer than ``seen`` exists or the hub closed
+        (shared between waiters: never cancel it; wrap it in :func:`asyncio.shield`)."""
+        if self.version > seen or self.closed:
+            done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+            done.set_result(None)
+            return done
+        if self._next is None or self._next.done():
+            self._next = asyncio.get_running_loop().create_future()
+        return self._next
 
-    async def wait_newer(self, seen: int) -> tuple[int, str | None]:
+    def _wake(self) -> None:
+        if self._next is not None and not self._next.done():
+            self._next.set_result(None)
+        self._next = None
+
+    async def publish(self, payload: bytes | str) -> None:
+        self.version += 1
+        self.payload = payload.encode() if isinstance(payload, str) else payload
+        self._wake()
+
+    async def wait_newer(self, seen: int) -> tuple[int, bytes | None]:
         """Wait until a version newer than ``seen`` exists (or the hub closes); return it."""
-        async with self._cond:
-            await self._cond.wait_for(lambda: self.version > seen or self.closed)
-            return self.version, self.payload
+        while self.version <= seen and not self.closed:
+            await asyncio.shield(self.changed(seen))
+        return self.version, self.payload
 
     async def close(self) -> None:
-        async with self._cond:
-            self.closed = True
-            self._cond.notify_all()
+        self.closed = True
+        self._wake()
 
 
 def _lights_payload(lights: LightSet) -> str:
     return json.dumps(lights.to_json(), separators=(",", ":"))
+
+
+def _encode(lights: LightSet) -> tuple[str, bytes]:
+    """The light set as JSON text (``GET /lights``) and its UTF-8 bytes (the WebSocket fan-out)."""
+    text = _lights_payload(lights)
+    return text, text.encode()
 
 
 class Runner:
@@ -122,6 +148,32 @@ class Runner:
         self.camera_state = "stopped"
         await self.hub.close()
 
+    @contextlib.asynccontextmanager
+    async def camera_lease(self, camera: Any) -> AsyncIterator[Any]:
+        """Pause the frame loop and lend ``camera``, opened, to someone else (live calibration).
+
+        The lights turn ``stale: true`` and the camera state reads ``calibrating``; the holder
+        should touch ``last_activity`` as it works (the systemd watchdog). On exit the camera is
+        closed and the loop restarts with a freshly built pipeline, which reloads its calibration.
+        """
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        await self._stop_pipeline()
+        await self._mark_stale()
+        self.camera_state, self.last_activity = "calibrating", time.monotonic()
+        try:
+            await camera.open()
+            yield camera
+        finally:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(camera.close(), 3.0)
+            self.camera_state = "starting"
+            if not self.hub.closed:
+                self.start()
+
     def request_rebuild(self, config: Any) -> None:
         """Use ``config`` from the next frame on: ``reconfigure`` the pipeline in place when the
         factory can (keeps tables and sampler state), else rebuild it."""
@@ -164,6 +216,7 @@ class Runner:
 
     # ---- the loop ---------------------------------------------------------------------------
     async def _run(self) -> None:
+        from device.errors import InputError
         from drivers.base import CameraError
 
         backoff = self.backoff_initial
@@ -183,6 +236,8 @@ class Runner:
                 camera_fault = isinstance(e, CameraError)
                 if camera_fault:
                     log.warning("camera error (%s): %s; reconnecting in %.2f s", type(e).__name__, e, backoff)
+                elif isinstance(e, InputError):  # configuration: the message says it all
+                    log.error("pipeline cannot start: %s; retrying in %.2f s", e, backoff)  # noqa: TRY400
                 else:
                     log.exception("pipeline failed; rebuilding it in %.2f s", backoff)
                 self.camera_state = "reconnecting"
@@ -198,14 +253,14 @@ class Runner:
         lights: LightSet = result.lights
         if lights.stale:
             lights = dataclasses.replace(lights, stale=False)
-        payload = await asyncio.to_thread(_lights_payload, lights)
+        text, payload = await asyncio.to_thread(_encode, lights)
         now = time.monotonic()
         if self._last_frame_t is not None:
             dt = max(now - self._last_frame_t, 1e-6)
             self.fps = 1.0 / dt if self.fps == 0.0 else 0.8 * self.fps + 0.2 / dt
         self._last_frame_t = now
         self.result, self.lights, self.stale = result, lights, False
-        self.lights_text = payload
+        self.lights_text = text
         self.frames += 1
         self.frames_skipped += int(bool(getattr(result, "skipped", False)))
         self.last_progress = self.last_activity = now
@@ -218,8 +273,8 @@ class Runner:
         self.fps = 0.0
         if self.lights is not None and not self.lights.stale:
             self.lights = dataclasses.replace(self.lights, stale=True)
-            self.lights_text = await asyncio.to_thread(_lights_payload, self.lights)
-            await self.hub.publish(self.lights_text)
+            self.lights_text, payload = await asyncio.to_thread(_encode, self.lights)
+            await self.hub.publish(payload)
 
     # ---- views for the API ------------------------------------------------------------------
     def progressing(self, within: float) -> bool:

@@ -1,0 +1,183 @@
+"""Start-up and reconnect latency of the probe service (part of ``lightprobe bench service``).
+
+Start-up: ``lightprobe serve --camera sim`` as a subprocess; per run, from ``exec`` (just before
+``Popen``): ``api_s`` when the dashboard line is printed (the server listens: it is printed after
+the socket accepts) and ``/api/v1/healthz`` answers, ``lights_s`` when the first light set arrives
+on ``WS /api/v1/stream`` (the client connects as soon as the API answers), and the service's CPU
+seconds by then (``/proc/PID/stat``: the least load-dependent figure on a shared box).
+``cold``: a fresh state directory (projection tables and the simulator's lens matrix built);
+``warm``: the same state directory again (tables loaded from ``STATE/cache``). numba's kernel
+cache is warm in both (it is built once per install, not per calibration).
+
+Reconnect: the service in-process (the real pipeline on the simulator, default backoff), a 5 s
+simulated disconnect (``sim.faults``); ``resume_s`` = first fresh (``stale: false``) light set
+on the WebSocket minus the moment the camera is back, with the first burst's capture time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["exec_to_lights", "reconnect_latency", "startup_summary"]
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _cpu_s(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def _write_config(state: Path, fps: float, light_count: int) -> Path:
+    state.mkdir(parents=True, exist_ok=True)
+    cfg = state / "config.toml"
+    cfg.write_text(f"[pipeline]\nfps = {fps!r}\nlight_count = {light_count}\n[mdns]\nenabled = false\n")
+    return cfg
+
+
+async def _first_lights(url: str, wait_s: float) -> tuple[float, float, dict[str, Any]]:
+    """(API answered, first light set) monotonic times and that light set."""
+    import aiohttp
+
+    async with aiohttp.ClientSession() as session:
+        while True:
+            try:
+                async with session.get(url + "/api/v1/healthz") as r:
+                    await r.read()
+                break
+            except aiohttp.ClientConnectionError:
+                await asyncio.sleep(0.002)
+        t_api = time.monotonic()
+        async with session.ws_connect(url + "/api/v1/stream") as ws:
+            msg = await ws.receive(timeout=wait_s)
+            t_lights = time.monotonic()
+    if msg.type != aiohttp.WSMsgType.TEXT:
+        raise RuntimeError(f"stream ended before the first light set: {msg}")
+    return t_api, t_lights, json.loads(msg.data)
+
+
+def exec_to_lights(state: Path, scene: str = "lebombo", *, fps: float = 10.0, light_count: int = 256,
+                   timeout: float = 400.0) -> dict[str, Any]:
+    """One start of ``lightprobe serve``: seconds from exec to the API and to the first lights."""
+    cfg = _write_config(state, fps, light_count)
+    t0 = time.monotonic()
+    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--scene", scene,
+                          "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
+                         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
+                         stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert p.stdout is not None
+        url = None
+        for line in p.stdout:
+            if "dashboard http://" in line:
+                url = line.split("dashboard ", 1)[1].strip().rstrip("/")
+                break
+        if url is None:
+            raise RuntimeError(f"service exited with {p.wait()}")
+        t_print = time.monotonic()
+        t_api, t_lights, first = asyncio.run(_first_lights(url, timeout))
+        cpu = _cpu_s(p.pid)
+    finally:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5)
+    return {"printed_s": t_print - t0, "api_s": t_api - t0, "lights_s": t_lights - t0,
+            "api_to_lights_s": t_lights - t_api, "service_cpu_s": cpu, "frame": first["frame"],
+            "lights": len(first["lights"]), "loadavg_1min": os.getloadavg()[0]}
+
+
+def _stats(runs: list[dict[str, Any]], key: str) -> dict[str, float]:
+    v = [float(r[key]) for r in runs]
+    return {"min": round(min(v), 3), "median": round(statistics.median(v), 3), "max": round(max(v), 3)}
+
+
+def startup_summary(reps_warm: int, reps_cold: int, scene: str = "lebombo") -> dict[str, Any]:
+    """Cold starts (fresh state dir each) and warm restarts (one state dir, tables cached)."""
+    out: dict[str, Any] = {"scene": scene, "cold": [], "warm": []}
+    with tempfile.TemporaryDirectory(prefix="lp-start-") as tmp:
+        for i in range(reps_cold):
+            out["cold"].append(exec_to_lights(Path(tmp) / f"cold{i}", scene))
+            print("cold", json.dumps(out["cold"][-1]), file=sys.stderr, flush=True)
+        warm = Path(tmp) / "warm"
+        exec_to_lights(warm, scene)  # builds the tables once
+        for _ in range(reps_warm):
+            out["warm"].append(exec_to_lights(warm, scene))
+            print("warm", json.dumps(out["warm"][-1]), file=sys.stderr, flush=True)
+    for kind in ("cold", "warm"):
+        if out[kind]:
+            out[f"{kind}_summary"] = {k: _stats(out[kind], k) for k in
+                                      ("api_s", "lights_s", "api_to_lights_s", "service_cpu_s")}
+    return out
+
+
+# ---- reconnect ----------------------------------------------------------------------------------
+async def _reconnect_once(state: Path, outage_s: float) -> dict[str, Any]:
+    import aiohttp
+    from aiohttp import web
+
+    from device.service.app import STATE, create_app
+    from device.service.cli import camera_factory, pipeline_factory
+    from device.service.config import ServiceConfig
+
+    cfg = ServiceConfig(path=state / "config.toml").with_patch(
+        {"mdns": {"enabled": False}, "pipeline": {"fps": 10.0, "light_count": 256}})
+    app = create_app(cfg, camera_factory("sim", "flashlight", state / "cache"),
+                     pipeline_factory(state, "benchprobe01"), token="bench-token-0123456789",
+                     probe_id="benchprobe01", port=0)  # default backoff, as `lightprobe serve`
+    runner = web.AppRunner(app, shutdown_timeout=0.5, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+    st = app[STATE]
+    try:
+        async with aiohttp.ClientSession() as c, c.ws_connect(f"http://127.0.0.1:{port}/api/v1/stream") as ws:
+            for _ in range(4):  # settle: bracket adapted, steady bursts
+                await ws.receive(timeout=300)
+            st.camera.faults.inject("disconnect", duration_s=outage_s)
+            back = time.monotonic() + outage_s  # the simulator counts from the injection
+            stale = False
+            while True:
+                d = json.loads((await ws.receive(timeout=60)).data)
+                stale = stale or d["stale"]
+                if stale and not d["stale"]:
+                    break
+            t_fresh = time.monotonic()
+            timings = dict(st.runner.result.timings)
+            exposures = list(st.runner.result.exposures)
+    finally:
+        await runner.cleanup()
+    return {"resume_s": t_fresh - back, "first_burst_capture_s": timings.get("capture"),
+            "first_burst_total_s": timings.get("total"), "exposures": len(exposures),
+            "loadavg_1min": os.getloadavg()[0]}
+
+
+def reconnect_latency(reps: int, outage_s: float = 5.0) -> dict[str, Any]:
+    """``reps`` disconnects of ``outage_s`` seconds, each on a fresh in-process service with a
+    warm table cache."""
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="lp-reconnect-") as tmp:
+        for i in range(reps):
+            state = Path(tmp) / "state"
+            runs.append(asyncio.run(_reconnect_once(state, outage_s)))
+            print("reconnect", i, json.dumps(runs[-1]), file=sys.stderr, flush=True)
+        shutil.rmtree(Path(tmp) / "state", ignore_errors=True)
+    return {"outage_s": outage_s, "runs": runs, "resume_s": _stats(runs, "resume_s"),
+            "first_burst_capture_s": _stats(runs, "first_burst_capture_s")}
