@@ -21,7 +21,7 @@ disc's rasterised pixels per frame),
 
 Plus the effect of Hemigon's filter parameters on those figures, and the Q2-Tree's incremental
 update against its full build end to end and for the tree alone (:func:`incremental_bench`:
-local, gain and noise sequences on the 1k maps and on the device's 512 x 256 equirect and
+local, gain, noise and still sequences on the 1k maps and on the device's 512 x 256 equirect and
 nside-64 HEALPix inputs). Times are ``min`` over repetitions (the box is shared; min is the
 least disturbed run; medians are kept beside them), in milliseconds; the load average at the
 start and end of the run is recorded (``summary.load_average``). ``--quick`` (3 maps, 3 counts,
@@ -158,15 +158,16 @@ def nikodym_table(img: np.ndarray, methods: list[str], reps: int) -> dict[str, A
 
 
 # -- Q2-Tree: incremental update against full build, end to end ------------------------------
-INCREMENTAL_KINDS = ("local", "gain", "noise")
+INCREMENTAL_KINDS = ("local", "gain", "noise", "still")
 
 
 def change_sequence(img: np.ndarray, kind: str, frames: int, seed: int = 0) -> list[np.ndarray]:
     """Frames of a slowly changing stream: ``local`` (a lamp-sized block, 1/8 of the height
     square, brightens 2% a frame and moves 1/256 of the width: the rest of the map is
     unchanged, as in a still room or the simulator), ``gain`` (every pixel x 1.002 every other
-    frame) or ``noise`` (1% multiplicative noise on every pixel, like a camera). ``img`` is an
-    (H, W, 3) equirect map or a (P, 3) NESTED one."""
+    frame), ``noise`` (1% multiplicative noise on every pixel, like a camera) or ``still`` (the
+    same pixels every frame, each frame a new array). ``img`` is an (H, W, 3) equirect map or
+    a (P, 3) NESTED one."""
     h, w = img.shape[:2]
     rng = np.random.default_rng(seed)
     out = []
@@ -182,6 +183,8 @@ def change_sequence(img: np.ndarray, kind: str, frames: int, seed: int = 0) -> l
             f[r0:r0 + b, c0:c0 + b] *= np.float32(1.0 + 0.02 * k)
         elif kind == "gain":
             f = img * np.float32(1.0 + 0.002 * (k % 2))
+        elif kind == "still":
+            f = img.copy()
         else:
             f = img * (1.0 + 0.01 * rng.standard_normal((*img.shape[:-1], 1))).astype(np.float32)
         out.append(np.ascontiguousarray(f, np.float32))
@@ -191,13 +194,16 @@ def change_sequence(img: np.ndarray, kind: str, frames: int, seed: int = 0) -> l
 def _q2_times(sample: Callable[[Any, np.ndarray], Any], frames: list[np.ndarray], reps: int
               ) -> dict[str, float]:
     """Full build (``reset`` then the frame) and update (the frame after its predecessor) of a
-    Q2TreeSampler over ``frames``: min and median wall ms over frames x reps, and the tree's
-    own time (``stats["tree_s"]``, us) for both."""
+    Q2TreeSampler over ``frames``: min and median wall ms over frames x reps, the tree's own
+    time (``stats["tree_s"]``, us) for both, and the update's stages (minima, us): pyramid
+    (``pyramid_s``: compare with the previous frame, re-sum changed runs, coarse levels),
+    tree, lights (``emit_s``) and the rest of the call (checks, Python)."""
     from device.sampling.q2tree import Q2TreeSampler
 
     s = Q2TreeSampler()
     sample(s, frames[0])  # warm up (JIT, tables)
     full, tfull, upd, tupd, changed = [], [], [], [], []
+    pyr, emit, rest = [], [], []
     for _ in range(max(1, reps)):
         for f in frames:
             s.reset()
@@ -211,12 +217,18 @@ def _q2_times(sample: Callable[[Any, np.ndarray], Any], frames: list[np.ndarray]
             t = time.perf_counter()
             sample(s, f)
             upd.append(time.perf_counter() - t)
-            tupd.append(s.stats["tree_s"])
-            changed.append(s.stats["changed_quads"])
+            st = s.stats
+            tupd.append(st["tree_s"])
+            changed.append(st["changed_quads"])
+            pyr.append(st["pyramid_s"])
+            emit.append(st["emit_s"])
+            rest.append(upd[-1] - st["pyramid_s"] - st["tree_s"] - st["emit_s"])
     out = {"full_ms": 1e3 * min(full), "full_median_ms": 1e3 * float(np.median(full)),
            "update_ms": 1e3 * min(upd), "update_median_ms": 1e3 * float(np.median(upd)),
            "tree_full_us": 1e6 * min(tfull), "tree_update_us": 1e6 * min(tupd),
-           "changed_quads_median": float(np.median(changed))}
+           "changed_quads_median": float(np.median(changed)),
+           "pyramid_update_us": 1e6 * min(pyr), "emit_update_us": 1e6 * min(emit),
+           "rest_update_us": 1e6 * min(rest)}
     out["ratio"] = out["update_ms"] / out["full_ms"]
     out["ratio_median"] = out["update_median_ms"] / out["full_median_ms"]
     out["tree_ratio"] = out["tree_update_us"] / out["tree_full_us"]
@@ -254,7 +266,9 @@ def incremental_bench(maps: dict[str, np.ndarray], counts: tuple[int, ...], fram
     for r in rows:
         key = f"{r['input']} / {r['sequence']} / N={r['count']}"
         summary.setdefault(key, {"ratio": [], "ratio_median": [], "tree_ratio": [],
-                                 "full_ms": [], "update_ms": []})
+                                 "full_ms": [], "update_ms": [], "pyramid_update_us": [],
+                                 "tree_update_us": [], "emit_update_us": [],
+                                 "rest_update_us": []})
         for k in summary[key]:
             summary[key][k].append(r[k])
     med = {k: {m: float(np.median(v)) for m, v in d.items()} for k, d in summary.items()}

@@ -391,3 +391,68 @@ def test_local_change_resums_only_its_quads(studio: np.ndarray) -> None:
     s.reset()
     s.sample(frame, 256)
     assert s.stats["pyramid_mode"] == "full"
+
+
+def test_unchanged_frames_skip_the_update_and_equal_the_full_update() -> None:
+    """A frame whose node sums did not change skips split-merge (``stats["skipped"]``); the
+    lights equal those of the same sampler with the skip disabled, with and without
+    hysteresis, over a sequence mixing repeated, changed and new frames and count changes."""
+    rng = np.random.default_rng(31)
+    for hysteresis in (0.0, 0.2):
+        fast = Q2TreeSampler(hysteresis=hysteresis)
+        slow = Q2TreeSampler(hysteresis=hysteresis)
+        m = _random_map(rng)
+        live = m.copy()
+        skipped = 0
+        for _step in range(40):
+            kind = rng.integers(0, 5)
+            if kind == 0:
+                live[rng.integers(0, len(live), 3)] *= np.float32(rng.lognormal(0.0, 1.0))
+            elif kind == 1:
+                live[:] = _random_map(rng)
+            count = int(rng.choice([100, 100, 100, 257]))
+            got = fast.sample_healpix(live, NSIDE, count)
+            slow._last = None  # never skip
+            want = slow.sample_healpix(live.copy(), NSIDE, count)
+            _assert_same_lights(got, want)
+            np.testing.assert_array_equal(fast.split_nodes, slow.split_nodes)
+            skipped += fast.stats["skipped"]
+            if fast.stats["skipped"]:
+                assert fast.stats["changed_quads"] == 0
+            if hysteresis == 0.0:
+                _assert_same_lights(got, Q2TreeSampler().sample_healpix(live.copy(), NSIDE, count))
+        assert skipped > 5
+
+
+@pytest.mark.parametrize("placement", ["centroid", "jitter"])
+def test_one_pass_lights_equal_leaf_arrays_then_regrouping(placement: str) -> None:
+    """``emit_lights`` (one compiled pass) gives the bits of ``leaf_arrays`` + jitter points +
+    ``regroup_worst`` (the path taken when a jitter point is not memoised yet)."""
+    from device.sampling.q2tree import _kernels
+    from device.sampling.q2tree._nodes import level_solid_angles, state_pyramid
+
+    rng = np.random.default_rng(12)
+    m = _random_map(rng)
+    m[: len(m) // 3] = 0.0  # dark leaves: centroid placement falls back to the jitter point
+    s = Q2TreeSampler(placement=placement)
+    for count in (12, 13, 14, 15, 100, 101, 299, 300, 301, 800):
+        s.sample_healpix(m, NSIDE, count)
+        s.sample_healpix(m, NSIDE, count)  # every jitter point now memoised
+        assert s._state is not None
+        pyr = state_pyramid(s._state)
+        assert pyr.moment is not None or placement == "jitter"
+        moment = pyr.moment if pyr.moment is not None else np.zeros((1, 3))
+        omega_k = level_solid_angles(pyr.max_level)
+        ids, rgb, omega, dirs, done = _kernels.emit_lights(
+            s._split, s._in_s, s._eff, pyr.rgb, pyr.lum, moment, pyr.moment is not None,
+            omega_k, *s._jitter_memo, count)
+        assert done
+        leaves, lrgb, lum, lomega, ldirs, missing = _kernels.leaf_arrays(
+            s._split, s._in_s, pyr.rgb, pyr.lum, moment, pyr.moment is not None, omega_k)
+        ldirs[missing] = s._jitter(leaves[missing])
+        if len(leaves) > count:
+            leaves, lrgb, lomega, ldirs = _kernels.regroup_worst(
+                s._split, s._in_s, s._eff, leaves, lrgb, lum, lomega, ldirs, len(leaves) - count)
+        assert len(ids) == count
+        for a, b in ((ids, leaves), (rgb, lrgb), (omega, lomega), (dirs, ldirs)):
+            np.testing.assert_array_equal(a, b)

@@ -22,9 +22,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._binning import fill_children
+from ._binning import children_stale, fill_children
 
-__all__ = ["build_tree", "leaf_arrays", "level_scale", "regroup_worst", "update_tree"]
+__all__ = ["build_tree", "emit_lights", "leaf_arrays", "level_scale", "regroup_worst",
+           "update_tree"]
 
 NEG_INF = -np.inf
 
@@ -119,9 +120,28 @@ def _heapify(keys: np.ndarray, ids: np.ndarray, size: int) -> None:
 
 # -- tree edits shared by build and update -------------------------------------------------------
 @njit(cache=True)
+def _fill_stale(src: tuple, split: np.ndarray) -> None:  # type: ignore[type-arg]
+    """:func:`fill_children` for the split nodes whose children are stale. Members of ``src``
+    are read once here: reading them per node costs reference counts (7 us for 82 nodes)."""
+    lc, stamp, qver = src[7], src[9], src[10]
+    for j in range(len(split)):
+        u = split[j]
+        level = _level(u)
+        if children_stale(lc, stamp, qver, u, level):
+            fill_children(src, u, level)
+
+
+@njit(cache=True, inline="always")
+def _fill(src: tuple, u: int, level: int) -> None:  # type: ignore[type-arg]
+    """:func:`fill_children` if it has work (the test reads 3 members of ``src`` only)."""
+    if children_stale(src[7], src[9], src[10], u, level):
+        fill_children(src, u, level)
+
+
+@njit(cache=True, inline="always")
 def _children_keys(src: tuple, lum: np.ndarray, u: int, level: int,  # type: ignore[type-arg]
                    scale: np.ndarray, a: float, eff: np.ndarray) -> None:
-    fill_children(src, u, level)
+    _fill(src, u, level)
     for c in range(4 * u, 4 * u + 4):
         p = _raw_importance(lum, c, level + 1, scale, a)
         eff[c] = min(p, eff[u])
@@ -190,6 +210,7 @@ def _candidates(src: tuple, lum: np.ndarray, scale: np.ndarray,  # type: ignore[
     mi = np.empty(cap, np.int64)
     ls = 0
     ms = 0
+    _fill_stale(src, split)
     for u in range(4, 16):
         eff[u] = _raw_importance(lum, u, 0, scale, a)
         if max_level > 0 and not in_s[u]:
@@ -202,7 +223,6 @@ def _candidates(src: tuple, lum: np.ndarray, scale: np.ndarray,  # type: ignore[
         if u >= 16:
             eff[u] = min(_raw_importance(lum, u, level, scale, a), eff[u >> 2])
         e_u = eff[u]
-        fill_children(src, u, level)
         mergeable = True
         for c in range(4 * u, 4 * u + 4):
             eff[c] = min(_raw_importance(lum, c, level + 1, scale, a), e_u)
@@ -371,16 +391,11 @@ def leaf_arrays(split: np.ndarray, in_s: np.ndarray, rgb: np.ndarray, lum: np.nd
 
 
 @njit(cache=True)
-def regroup_worst(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, leaves: np.ndarray,
-                  rgb: np.ndarray, lum: np.ndarray, omega: np.ndarray, dirs: np.ndarray,
-                  excess: int
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Exact light count when the leaves exceed it by ``excess`` in {1, 2}: the children of the
-    worst mergeable parent (the node a merge would take first: lowest key, ties to the larger
-    id) keep their 3 - excess best as lights (highest key, ties to the smaller id) and the
-    other excess + 1 become one light with the parent's id: power and solid angle summed,
-    direction the luminance-weighted mean of theirs (equal weights if dark), normalised.
-    Returns (ids, rgb, solid angle, directions), sorted by id."""
+def _merged_children(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, excess: int
+                     ) -> tuple[int, np.ndarray]:
+    """The worst mergeable parent (the node a merge would take first: lowest key, ties to the
+    larger id) and, sorted by id, the ``excess + 1`` of its children that become one light
+    (all but its 3 - excess best: highest key, ties to the smaller id)."""
     worst = -1
     for j in range(len(split)):
         u = split[j]
@@ -396,7 +411,21 @@ def regroup_worst(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, leaves: 
             kids[b + 1] = kids[b]
             b -= 1
         kids[b + 1] = c
-    merged = np.sort(kids[3 - excess:])
+    return worst, np.sort(kids[3 - excess:])
+
+
+@njit(cache=True)
+def regroup_worst(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, leaves: np.ndarray,
+                  rgb: np.ndarray, lum: np.ndarray, omega: np.ndarray, dirs: np.ndarray,
+                  excess: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact light count when the leaves exceed it by ``excess`` in {1, 2}: the children of the
+    worst mergeable parent (the node a merge would take first: lowest key, ties to the larger
+    id) keep their 3 - excess best as lights (highest key, ties to the smaller id) and the
+    other excess + 1 become one light with the parent's id: power and solid angle summed,
+    direction the luminance-weighted mean of theirs (equal weights if dark), normalised.
+    Returns (ids, rgb, solid angle, directions), sorted by id."""
+    worst, merged = _merged_children(split, in_s, eff, excess)
     pos = np.searchsorted(leaves, merged)
     wsum = 0.0
     for p in pos:
@@ -422,9 +451,9 @@ def regroup_worst(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, leaves: 
     for i in range(len(leaves) + 1):
         if not placed and (i == len(leaves) or leaves[i] > worst):
             ids[k] = worst
-            out_rgb[k] = g_rgb
             out_omega[k] = g_omega
             for ch in range(3):
+                out_rgb[k, ch] = g_rgb[ch]
                 out_dirs[k, ch] = g_dir[ch] / norm if norm > 0.0 else dirs[pos[0], ch]
             k += 1
             placed = True
@@ -434,8 +463,108 @@ def regroup_worst(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, leaves: 
             m += 1
             continue
         ids[k] = leaves[i]
-        out_rgb[k] = rgb[i]
         out_omega[k] = omega[i]
-        out_dirs[k] = dirs[i]
+        for ch in range(3):
+            out_rgb[k, ch] = rgb[i, ch]
+            out_dirs[k, ch] = dirs[i, ch]
         k += 1
     return ids, out_rgb, out_omega, out_dirs
+
+
+@njit(cache=True, inline="always")
+def _leaf_direction(u: int, moment: np.ndarray, moments: bool, memo_ids: np.ndarray,
+                    memo_dirs: np.ndarray, d: np.ndarray) -> bool:
+    """``d`` = the leaf's normalised first moment, else its memoised jitter point (False if
+    not memoised): :func:`leaf_arrays`' rule."""
+    norm = 0.0
+    if moments:
+        norm = np.sqrt(moment[u, 0] ** 2 + moment[u, 1] ** 2 + moment[u, 2] ** 2)
+    if norm > 0.0:
+        for ch in range(3):
+            d[ch] = moment[u, ch] / norm
+        return True
+    at = np.searchsorted(memo_ids, u)
+    if at == len(memo_ids) or memo_ids[at] != u:
+        return False
+    for ch in range(3):
+        d[ch] = memo_dirs[at, ch]
+    return True
+
+
+@njit(cache=True)
+def emit_lights(split: np.ndarray, in_s: np.ndarray, eff: np.ndarray, rgb: np.ndarray,
+                lum: np.ndarray, moment: np.ndarray, moments: bool, level_omega: np.ndarray,
+                memo_ids: np.ndarray, memo_dirs: np.ndarray, count: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """The lights of the tree in one pass, straight into the output arrays: what
+    :func:`leaf_arrays` then :func:`regroup_worst` give (same arithmetic, same order, so the
+    same bits), with the fixed jitter point of each leaf without a centroid read from the memo
+    (``memo_ids`` sorted, ``memo_dirs``). Returns (ids, rgb, solid angle, directions, done);
+    ``done`` is False, and the arrays are not to be used, when a jitter point is not memoised
+    or the count needs the base-face grouping (N < 12): the caller then takes the slow path."""
+    n_leaves = 12 + 3 * len(split)
+    excess = n_leaves - count
+    empty = (np.empty(0, np.int64), np.empty((0, 3)), np.empty(0), np.empty((0, 3)))
+    if excess > 0 and len(split) == 0:
+        return empty[0], empty[1], empty[2], empty[3], False
+    # Choose the children merged into one light (regroup_worst's rule)
+    worst = -1
+    merged = np.full(3, -1, np.int64)
+    if excess > 0:
+        worst, group = _merged_children(split, in_s, eff, excess)
+        merged[:excess + 1] = group
+    n = n_leaves - max(excess, 0)
+    ids = np.empty(n, np.int64)
+    out_rgb = np.empty((n, 3))
+    omega = np.empty(n)
+    dirs = np.empty((n, 3))
+    d = np.empty(3)
+    g_rgb = np.zeros(3)
+    g_dir = np.zeros(3)  # luminance-weighted
+    g_dir1 = np.zeros(3)  # equal weights (a dark group)
+    first_dir = np.zeros(3)
+    g_omega = wsum = 0.0
+    g_at = -1  # the group light's slot
+    m = 0  # merged members seen
+    k = 0
+    for j in range(-12, len(split)):
+        # roots (ids 4..15) first, then the children of each split node (sorted parents)
+        lo = j + 16 if j < 0 else 4 * split[j]
+        hi = lo + 1 if j < 0 else lo + 4
+        for u in range(lo, hi):
+            if in_s[u]:
+                continue
+            if not _leaf_direction(u, moment, moments, memo_ids, memo_dirs, d):
+                return empty[0], empty[1], empty[2], empty[3], False
+            if worst >= 0 and g_at < 0 and u > worst:
+                g_at = k
+                k += 1
+            if m <= excess and worst >= 0 and merged[m] == u:
+                # a member of the group light (regroup_worst: sums in id order)
+                if m == 0:
+                    first_dir[:] = d
+                wsum += lum[u]
+                for ch in range(3):
+                    g_rgb[ch] += rgb[u, ch]
+                    g_dir[ch] += lum[u] * d[ch]
+                    g_dir1[ch] += 1.0 * d[ch]
+                g_omega += level_omega[_level(u)]
+                m += 1
+                continue
+            ids[k] = u
+            omega[k] = level_omega[_level(u)]
+            for ch in range(3):
+                out_rgb[k, ch] = rgb[u, ch]
+                dirs[k, ch] = d[ch]
+            k += 1
+    if worst >= 0:
+        if g_at < 0:
+            g_at = k
+        gd = g_dir if wsum > 0.0 else g_dir1
+        norm = np.sqrt(gd[0] ** 2 + gd[1] ** 2 + gd[2] ** 2)
+        ids[g_at] = worst
+        omega[g_at] = g_omega
+        for ch in range(3):
+            out_rgb[g_at, ch] = g_rgb[ch]
+            dirs[g_at, ch] = gd[ch] / norm if norm > 0.0 else first_dir[ch]
+    return ids, out_rgb, omega, dirs, True

@@ -24,9 +24,14 @@ the tree first reaches them, and between frames only the pixel runs whose bits c
 summed again (``._binning.FrameState``): the result is bit for bit that of a full pass.
 Measured (``lightprobe bench samplers``, six 1k maps, load 5-7): 1.98 ms per full build at
 N = 1000 against 11.3 ms (same box, idle) when every quad down to nside 256 was binned each
-frame; a frame with a local change costs 0.31 of a full build at N = 256 (the floor is reading
-the new frame and the previous one), a frame in which every pixel changed (camera noise, a gain
-change) about as much as a full build.
+frame. Per frame of a stream the input is checked once per shape and count, the split-merge
+update is skipped when no node sum changed (it would find no swap that pays), and the lights
+come from one compiled pass (leaves, memoised jitter points, exact-count regrouping). A frame
+with a local change costs, end to end at N = 256 (medians over the six maps, load 1.4), 0.23
+of a full build on 1k maps (0.32 / 1.39 ms; the floor is reading the new frame and the kept
+one), 0.21 on the pipeline's 512 x 256 equirect (0.087 / 0.42 ms) and 0.18 on its nside-64
+HEALPix map (0.041 / 0.22 ms); a frame in which every pixel changed (camera noise, a gain
+change) 0.7-1.0 of a full build.
 
 Exact light counts. Every split adds 3 leaves, so the tree holds ``12 + 3 s`` leaves with
 ``s = ceil((N - 12) / 3)``. When that exceeds N by e in {1, 2}, the children of the worst
@@ -74,6 +79,7 @@ __all__ = ["MAX_NSIDE", "Q2TreeSampler", "auto_nside"]
 MAX_NSIDE = 512
 _JITTER_MEMO = 1 << 16  # jitter points remembered at most
 _ROOTS = np.arange(4, 16, dtype=np.int64)
+_NO_MOMENT = np.zeros((1, 3))
 
 
 def auto_nside(height: int) -> int:
@@ -111,7 +117,8 @@ class Q2TreeSampler:
     ``pyramid_mode`` ("full" or "incremental" binning) and ``changed_quads`` (coarse quads
     summed again), the seconds spent in ``pyramid_s`` (per-frame coarse sums), ``tree_s``
     (build or split-merge, including the finer nodes summed on demand) and ``emit_s``
-    (lights), the ``splits`` / ``merges`` done, ``nside`` and ``coarse_nside``.
+    (lights), the ``splits`` / ``merges`` done, ``nside``, ``coarse_nside`` and ``skipped``
+    (True when no node sum changed since the last frame, so split-merge was not run).
     """
 
     name = "q2tree"
@@ -155,6 +162,14 @@ class Q2TreeSampler:
         self._eff: np.ndarray = np.zeros(0, np.float64)
         self._split: np.ndarray = np.zeros(0, np.int64)
         self._has_tree = False
+        # the last input's checked plan: (kind, shape[, nside], count, nside_max) -> (max level,
+        # coarse level)
+        self._plan_key: tuple[Any, ...] = ()
+        self._plan = (0, 0)
+        self._scale_key: tuple[Any, ...] = ()
+        self._scale = np.zeros(0)
+        # (frame state, its frame number, parameters) the tree was last made for
+        self._last: tuple[Any, ...] | None = None
 
     # -- state ------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -165,6 +180,7 @@ class Q2TreeSampler:
         self._in_s[self._split] = 0
         self._split = np.zeros(0, np.int64)
         self._has_tree = False
+        self._last = None
 
     @property
     def split_nodes(self) -> np.ndarray:
@@ -196,15 +212,20 @@ class Q2TreeSampler:
         quads whose pixels changed since the previous frame are summed again.
         """
         arr = np.asarray(equirect)
-        if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != 2 * arr.shape[0]:
-            raise InputError(f"expected an (H, 2H, 3) equirect map, got shape {arr.shape}",
-                             param="equirect")
         count = _check_count(count)
-        nside = self.nside_max or auto_nside(arr.shape[0])
-        _check_capacity(count, nside)
+        plan_key = ("equirect", arr.shape, count, self.nside_max)
+        if plan_key != self._plan_key:
+            # checked once per input shape and count (a stream repeats them)
+            if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != 2 * arr.shape[0]:
+                raise InputError(f"expected an (H, 2H, 3) equirect map, got shape {arr.shape}",
+                                 param="equirect")
+            nside = self.nside_max or auto_nside(arr.shape[0])
+            _check_capacity(count, nside)
+            k = nside.bit_length() - 1
+            self._plan = (k, coarse_level(k, arr.shape[0] * arr.shape[1], count))
+            self._plan_key = plan_key
         t0 = time.perf_counter()
-        k = nside.bit_length() - 1
-        lc = coarse_level(k, arr.shape[0] * arr.shape[1], count)
+        k, lc = self._plan
         state = self._state_for(("equirect", arr.shape[0], k, lc), equirect_tables,
                                 (arr.shape[0], k, lc))
         mode = state.load(np.ascontiguousarray(arr, np.float32).reshape(-1, 3))
@@ -232,22 +253,27 @@ class Q2TreeSampler:
         """
         count = _check_count(count)
         nside = int(nside)
-        if nside < 1 or nside & (nside - 1) or nside > 8192:
-            raise InputError(f"nside must be a power of two in [1, 8192], got {nside}",
-                             param="nside")
         hp = np.asarray(hp_map)
-        if hp.shape != (12 * nside * nside, 3):
-            raise InputError(f"HEALPix map must have shape ({12 * nside * nside}, 3) for nside "
-                             f"{nside}, got {hp.shape}", param="hp_map")
-        tree_nside = min(nside, self.nside_max or 256)
-        _check_capacity(count, tree_nside)
+        plan_key = ("healpix", hp.shape, nside, count, self.nside_max)
+        if plan_key != self._plan_key:
+            # checked once per input shape, nside and count
+            if nside < 1 or nside & (nside - 1) or nside > 8192:
+                raise InputError(f"nside must be a power of two in [1, 8192], got {nside}",
+                                 param="nside")
+            if hp.shape != (12 * nside * nside, 3):
+                raise InputError(f"HEALPix map must have shape ({12 * nside * nside}, 3) for "
+                                 f"nside {nside}, got {hp.shape}", param="hp_map")
+            tree_nside = min(nside, self.nside_max or 256)
+            _check_capacity(count, tree_nside)
+            k = tree_nside.bit_length() - 1
+            self._plan = (k, coarse_level(k, 12 * tree_nside * tree_nside, count))
+            self._plan_key = plan_key
         t0 = time.perf_counter()
-        if tree_nside < nside:
-            hp = reduce_healpix(np.where(np.isfinite(hp) & (hp > 0), hp, 0), nside, tree_nside)
+        k, lc = self._plan
+        if (1 << k) < nside:
+            hp = reduce_healpix(np.where(np.isfinite(hp) & (hp > 0), hp, 0), nside, 1 << k)
         elif hp.dtype not in (np.float32, np.float64):
             hp = hp.astype(np.float64)
-        k = tree_nside.bit_length() - 1
-        lc = coarse_level(k, 12 * tree_nside * tree_nside, count)
         state = self._state_for(("healpix", k, lc), healpix_tables, (k, lc))
         mode = state.load(np.ascontiguousarray(hp))
         t_pyr = time.perf_counter() - t0
@@ -269,14 +295,25 @@ class Q2TreeSampler:
         pyr = state_pyramid(state)
         src = state.source()
         t1 = time.perf_counter()
-        mode, n_split, n_merge = self._restructure(src, pyr, count)
+        key = (count, self.importance, self.a, self.b, self.hysteresis, self.placement,
+               self.seed, self.jitter_extent)
+        last = self._last
+        if (state.changed == 0 and last is not None and last[0] is state
+                and last[1] == state.frame - 1 and last[2] == key and self._has_tree):
+            # No node sum changed since the last frame, which this tree was made for: the
+            # split-merge update would find no swap that pays (it stopped at none), skip it
+            mode, n_split, n_merge, skipped = "incremental", 0, 0, True
+        else:
+            mode, n_split, n_merge = self._restructure(src, pyr, count)
+            skipped = False
         t2 = time.perf_counter()
         lights = self._emit(pyr, count)
         t3 = time.perf_counter()
+        self._last = (state, state.frame, key)
         self.stats = {"mode": mode, "tree_s": t2 - t1, "emit_s": t3 - t2,
                       "splits": n_split, "merges": n_merge, "nside": pyr.nside,
                       "coarse_nside": 1 << state.tables.coarse,
-                      "leaves": int(12 + 3 * len(self._split))}
+                      "leaves": int(12 + 3 * len(self._split)), "skipped": skipped}
         return lights
 
     def _fresh(self, state: FrameState, count: int) -> LightSet:
@@ -289,8 +326,12 @@ class Q2TreeSampler:
                      count: int) -> tuple[str, int, int]:
         """Full build on the first frame (or a new nside), incremental split-merge after."""
         n_splits = max(0, -(-(count - 12) // 3))
-        scale = _kernels.level_scale(level_solid_angles(pyr.max_level), self.a, self.b,
-                                     self.importance == "mean")
+        scale_key = (pyr.max_level, self.a, self.b, self.importance)
+        if scale_key != self._scale_key:
+            self._scale = _kernels.level_scale(level_solid_angles(pyr.max_level), self.a,
+                                               self.b, self.importance == "mean")
+            self._scale_key = scale_key
+        scale = self._scale
         if self._nside != pyr.nside:
             self._nside = pyr.nside
             self._in_s = np.zeros(16 * pyr.nside * pyr.nside, np.uint8)
@@ -315,10 +356,18 @@ class Q2TreeSampler:
         if not self._has_tree:
             return LightSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),
                             np.zeros(0, np.int64), method=self.name)
-        moment = pyr.moment if pyr.moment is not None else np.zeros((1, 3))
+        moment = pyr.moment if pyr.moment is not None else _NO_MOMENT
+        memo_ids, memo_dirs = self._jitter_memo
+        level_omega = level_solid_angles(pyr.max_level)
+        ids, rgb, omega, dirs, done = _kernels.emit_lights(
+            self._split, self._in_s, self._eff, pyr.rgb, pyr.lum, moment, pyr.moment is not None,
+            level_omega, memo_ids, memo_dirs, count)
+        if done:
+            # the common case, one compiled call: every jitter point needed was memoised
+            return LightSet(dirs, rgb, omega, ids, method=self.name, pose=_identity_pose())
         leaves, rgb, lum, omega, dirs, missing = _kernels.leaf_arrays(
             self._split, self._in_s, pyr.rgb, pyr.lum, moment, pyr.moment is not None,
-            level_solid_angles(pyr.max_level))
+            level_omega)
         if missing.any():
             # jitter placement, or a leaf without power: its fixed jitter point
             dirs[missing] = self._jitter(leaves[missing])
@@ -364,6 +413,12 @@ class Q2TreeSampler:
         N < 12: runs of consecutive base faces (N >= 12: :func:`._kernels.regroup_worst`)."""
         return [(int(leaves[r[0]]), r) for r in np.array_split(np.arange(12), count)
                 if len(r) > 1]
+
+
+def _identity_pose() -> dict[str, Any]:
+    """LightSet's default pose, built without ``np.eye(3).tolist()`` (1.3 us a frame)."""
+    return {"rotation": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            "position": [0.0, 0.0, 0.0]}
 
 
 def _check_capacity(count: int, nside: int) -> None:
