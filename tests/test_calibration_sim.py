@@ -77,8 +77,10 @@ def test_sim_lens_recovered(sim190: tuple[FisheyeModel, list[View], float]) -> N
     print(f"sim 190: f err {100 * (K[0, 0] / true.K[0, 0] - 1):.3f}% / {100 * (K[1, 1] / true.K[1, 1] - 1):.3f}%, "
           f"reprojection vs truth up to {theta_max:.1f} deg: max {worst:.3f} px rms {rms:.3f} px, "
           f"rms {res.rms_px:.3f} px, used {len(res.used)}, rejected {len(res.rejected)}")
+    # Issue 5: the true model is reprojected within 0.2 px over the part of the image circle the
+    # views cover (deterministic: seeded views; measured max 0.196 px, rms 0.129 px)
+    assert worst <= 0.2, (worst, rms)
     assert rms <= 0.2
-    assert worst <= 0.35
     assert res.rms_px < 0.3
     # The check can fail: the true model with a 0.5 % focal error is far outside the bound.
     off = FisheyeModel(true.image_size, true.K * np.array([[1.005, 1, 1], [1, 1.005, 1], [1, 1, 1]]), true.D)
