@@ -13,6 +13,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test,relight]'
+	$(BIN)/python -m compileall -q device drivers sim calibration hostlink bench  # bytecode up front: faster service start
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -181,3 +181,35 @@ def reconnect_latency(reps: int, outage_s: float = 5.0) -> dict[str, Any]:
         shutil.rmtree(Path(tmp) / "state", ignore_errors=True)
     return {"outage_s": outage_s, "runs": runs, "resume_s": _stats(runs, "resume_s"),
             "first_burst_capture_s": _stats(runs, "first_burst_capture_s")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m bench.service_startup [--warm N] [--cold N] [--scene S] [--state DIR]``: the
+    start-up part alone (seconds; no plots). ``--state`` keeps the warm state dir between calls."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m bench.service_startup", description=main.__doc__)
+    p.add_argument("--warm", type=int, default=5, help="warm starts (default 5)")
+    p.add_argument("--cold", type=int, default=0, help="cold starts (default 0)")
+    p.add_argument("--scene", default="lebombo")
+    p.add_argument("--state", type=Path, default=None, help="warm state dir to reuse (default: a temporary one)")
+    a = p.parse_args(argv)
+    if a.state is None:
+        out = startup_summary(a.warm, a.cold, a.scene)
+    else:
+        out = {"scene": a.scene, "cold": [], "warm": []}
+        exec_to_lights(a.state, a.scene)  # builds the tables if needed
+        for _ in range(a.warm):
+            out["warm"].append(exec_to_lights(a.state, a.scene))
+            print("warm", json.dumps(out["warm"][-1]), file=sys.stderr, flush=True)
+        out["warm_summary"] = {k: _stats(out["warm"], k) for k in
+                               ("api_s", "lights_s", "api_to_lights_s", "service_cpu_s")}
+    for kind in ("cold", "warm"):
+        if f"{kind}_summary" in out:
+            print(kind, json.dumps(out[f"{kind}_summary"]))
+    print("loadavg", [round(r["loadavg_1min"], 2) for r in out["warm"] + out["cold"]])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

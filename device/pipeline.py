@@ -26,7 +26,9 @@ It skips what a scene does not need:
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -38,6 +40,8 @@ from device.errors import InputError
 from drivers.base import Camera, Frame
 
 __all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "tone_map"]
+
+log = logging.getLogger(__name__)
 
 # Histogram of log2 luminance (fused fisheye image, calibrated unit): 64 bins, fixed edges.
 HISTOGRAM_EDGES_LOG2 = np.linspace(-16.0, 24.0, 65)
@@ -180,12 +184,13 @@ class Pipeline:
 
     def _build_tables(self) -> tuple[Any, np.ndarray]:
         """Projector (remap tables: from ``cache_dir`` when built before) and field-of-view mask;
-        then one projection of a black frame and one sampling of a small map, so the numba
-        kernels are loaded (from numba's cache) here, in parallel with the first burst, rather
-        than inside the first frame's processing; the fusion and preview modules are imported."""
+        then one projection of a black frame with one invalid pixel, one fusion of a tiny burst
+        and two samplings of a small map (a full build, then the incremental update the first
+        frame also runs), so every numba kernel of the first frame is loaded (from numba's cache)
+        here, in parallel with the first burst, rather than after it; the preview module is
+        imported."""
         import cv2  # noqa: F401  (tone_map)
 
-        import device.hdr.fusion  # noqa: F401
         from device.burst import field_of_view_mask
         from device.projection import Projector
 
@@ -195,9 +200,34 @@ class Pipeline:
                               lower=cfg.lower, cache_dir=cfg.cache_dir)
         mask = field_of_view_mask(fe)
         w, h = fe.image_size
-        projector.project(np.zeros((h, w, 3), np.float32), valid=mask)
-        self._make_sampler(cfg.sampler).sample(np.ones((8, 16, 3), np.float32), 4)
+        one_bad = mask.copy()
+        one_bad[h // 2, w // 2] = False  # also loads the kernel for invalid pixels (saturated lamps)
+        projector.project(np.zeros((h, w, 3), np.float32), valid=one_bad)
+        try:  # warm-up only: a failure here costs the first frame time, nothing else
+            self._warm_fusion()
+            warm = np.zeros((16, 32, 3), np.float32)
+            warm[:8] = 1.0  # lit upper hemisphere, black below (as published)
+            sampler = self._make_sampler(cfg.sampler)
+            sampler.sample(warm, 13)
+            warm[:4, :8] = 3.0
+            sampler.sample(warm, 13)
+        except Exception as e:
+            log.debug("kernel warm-up failed: %s", e)
         return projector, mask
+
+    def _warm_fusion(self) -> None:
+        """Fuse a tiny two-frame burst in the camera's pixel format (loads the merge kernel)."""
+        from device.hdr.fusion import fuse_frames
+        from drivers.base import Frame, FrameMetadata
+
+        fmt = self.camera.mode.format
+        if fmt.is_raw:
+            data, white = np.zeros((2, 2, 3), np.uint16), float((1 << fmt.bit_depth) - 1)
+        else:
+            data, white = np.zeros((2, 2, 3), np.uint8), 255.0
+        frames = [Frame(data + 1, FrameMetadata(t, 1.0, 0.0, i), fmt, 0.0, white)
+                  for i, t in enumerate((1e-3, 4e-3))]
+        fuse_frames(frames, self.calibration.response)
 
     async def _ensure_tables(self) -> None:
         """Wait for the tables (started by :meth:`start`, or now after a geometry change)."""
@@ -284,7 +314,25 @@ class Pipeline:
         t0 = time.perf_counter()
         fused = fuse_frames(frames, cal.response)
         full_scale = cal.response.inverse[-1] if not frames[0].format.is_raw else 1.0
-        self._prev = (exposure_rates(fused.radiance, full_scale), fused.saturated)
+        valid = self._fov_mask
+        scale = 1.0 if cal.photometric is None else cal.photometric.scale
+        side: dict[str, Any] = {}
+
+        def side_work() -> None:
+            """What the lights do not need (the next burst's plan, histogram, preview), on the
+            other core while this thread projects and samples."""
+            try:
+                side["rates"] = exposure_rates(fused.radiance, full_scale)
+                lum = (fused.radiance[valid] * scale) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+                with np.errstate(divide="ignore"):
+                    side["hist"] = np.histogram(np.log2(lum[lum > 0]), bins=HISTOGRAM_EDGES_LOG2)[0]
+                side["preview"] = tone_map(fused.radiance, valid)
+                side["sat"] = float(fused.saturated[valid].mean()) if valid is not None and valid.any() else 0.0
+            except BaseException as e:  # re-raised by the frame's thread
+                side["error"] = e
+
+        helper = threading.Thread(target=side_work, name="lightprobe-frame-side", daemon=True)
+        helper.start()
         t1 = time.perf_counter()
         maps = self._projector.project(fused.radiance, valid=~fused.invalid)
         equirect = maps.equirect
@@ -303,13 +351,11 @@ class Pipeline:
             lights.frame, lights.timestamp = self._frame, now
             self._last_sampled = (coarse, now, sweep)
         t3 = time.perf_counter()
-        valid = self._fov_mask
-        scale = 1.0 if cal.photometric is None else cal.photometric.scale
-        lum = (fused.radiance[valid] * scale) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-        with np.errstate(divide="ignore"):
-            hist, _ = np.histogram(np.log2(lum[lum > 0]), bins=HISTOGRAM_EDGES_LOG2)
-        preview = tone_map(fused.radiance, valid)
-        sat = float(fused.saturated[valid].mean()) if valid is not None and valid.any() else 0.0
+        helper.join()
+        if "error" in side:
+            raise side["error"]
+        self._prev = (side["rates"], fused.saturated)
+        hist, preview, sat = side["hist"], side["preview"], side["sat"]
         return FrameResult(
             frame=self._frame, timestamp=now, equirect=equirect, polar=maps.polar, healpix=maps.healpix,
             lights=lights, exposures=[float(f.meta.exposure_s) for f in frames],

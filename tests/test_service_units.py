@@ -145,6 +145,58 @@ def test_numba_cache_goes_to_the_state_dir_only_when_the_package_is_read_only(tm
     assert numba_cache_dir({}, state, writable) is None  # numba's in-tree cache works
 
 
+def test_one_blas_thread_unless_set() -> None:
+    from device.service.cli import single_blas_thread
+
+    env: dict[str, str] = {}
+    single_blas_thread(env)
+    assert env == {"OPENBLAS_NUM_THREADS": "1"}
+    env = {"OPENBLAS_NUM_THREADS": "2"}
+    single_blas_thread(env)
+    assert env == {"OPENBLAS_NUM_THREADS": "2"}  # an explicit setting wins
+
+
+def test_first_frame_kernels_load_with_the_tables_not_after_the_burst(tmp_path: Path) -> None:
+    """``Pipeline._build_tables`` (run beside the first burst) loads every numba kernel the first
+    frame's fusion and (full build + incremental) sampling use; the first frame then loads none,
+    and the tables thread imports no scipy.ndimage (a warm start needs none)."""
+    import asyncio
+    import sys
+
+    import numba.core.caching as caching
+
+    from device.pipeline import Pipeline, PipelineConfig
+    from sim.camera import SimCamera
+
+    loaded: list[str] = []
+    orig = caching.Cache.load_overload
+
+    def spy(self, *a, **k):  # type: ignore[no-untyped-def]
+        loaded.append(self._name)
+        return orig(self, *a, **k)
+
+    async def run() -> tuple[list[str], list[str]]:
+        cam = SimCamera("flashlight", cache_dir=tmp_path)
+        pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(cache_dir=str(tmp_path)))
+        await pipe.start()
+        try:
+            await pipe._ensure_tables()
+            warm = list(loaded)
+            loaded.clear()
+            await pipe.step()
+            return warm, list(loaded)
+        finally:
+            await pipe.stop()
+
+    caching.Cache.load_overload = spy  # type: ignore[method-assign]
+    try:
+        _, first = asyncio.run(run())
+    finally:
+        caching.Cache.load_overload = orig  # type: ignore[method-assign]
+    assert first == [], first
+    assert "healpy" not in sys.modules
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_numba_cache_dir_really_caches_the_service_kernels(tmp_path: Path) -> None:

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import scipy.sparse as sp
-from scipy import ndimage
 
 from calibration.model import Calibration, FisheyeModel
 from device.sphere import CAMERA_TO_PROBE
@@ -58,6 +57,8 @@ class _Geometry:
         self.fisheye = fisheye
         self.valid = valid
         self.w, self.h = fisheye.image_size
+        from scipy import ndimage  # only when tables are built (a warm start loads them: no import)
+
         self.eroded = ndimage.binary_erosion(valid, border_value=0)
         self.theta_valid = min(np.deg2rad(fisheye.fov_deg / 2), float(_theta_table(fisheye)[1][-1]))
 
