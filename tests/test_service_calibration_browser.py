@@ -54,7 +54,9 @@ async def test_calibration_page_session_to_commit(tmp_path: Path, artifacts_dir:
             # Corners are drawn over the live frame while the board is found
             await page.wait_for_function("+document.getElementById('cal-overlay').dataset.corners === 54",
                                          timeout=60_000)
-            assert await page.eval_on_selector("#cal-frame", "e => e.naturalWidth") == 640
+            # the live frame shows (it reloads every poll: wait for a loaded one)
+            await page.wait_for_function("document.getElementById('cal-frame').naturalWidth === 640",
+                                         timeout=30_000)
             await page.wait_for_function("document.getElementById('good-enough').dataset.state === 'yes'",
                                          timeout=300_000)
             assert not await page.is_disabled("#commit-button")

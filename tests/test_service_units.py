@@ -158,10 +158,8 @@ def test_one_blas_thread_unless_set() -> None:
 
 def test_first_frame_kernels_load_with_the_tables_not_after_the_burst(tmp_path: Path) -> None:
     """``Pipeline._build_tables`` (run beside the first burst) loads every numba kernel the first
-    frame's fusion and (full build + incremental) sampling use; the first frame then loads none,
-    and the tables thread imports no scipy.ndimage (a warm start needs none)."""
+    frame's fusion and (full build + incremental) sampling use; the first frame then loads none."""
     import asyncio
-    import sys
 
     import numba.core.caching as caching
 
@@ -194,7 +192,17 @@ def test_first_frame_kernels_load_with_the_tables_not_after_the_burst(tmp_path: 
     finally:
         caching.Cache.load_overload = orig  # type: ignore[method-assign]
     assert first == [], first
-    assert "healpy" not in sys.modules
+
+
+def test_service_packages_never_import_healpy() -> None:
+    """healpy (GPL) is a test-only reference: no shipped module may import it."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    offenders = [str(f.relative_to(root)) for pkg in ("device", "drivers", "sim", "calibration", "hostlink", "bench")
+                 for f in (root / pkg).rglob("*.py")
+                 if re.search(r"^\s*(import|from)\s+healpy\b", f.read_text(), re.M)]
+    assert offenders == []
 
 
 @pytest.mark.slow
