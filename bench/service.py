@@ -304,6 +304,7 @@ def compare_irradiance(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
 async def _accuracy_one(name: str, light_count: int, cache: Path | None = None) -> dict[str, Any]:
     import aiohttp
 
+    from bench.service_startup import stop_service
     from sim.scenarios import load_scene
 
     with tempfile.TemporaryDirectory(prefix="lp-acc-") as tmp:
@@ -315,12 +316,7 @@ async def _accuracy_one(name: str, light_count: int, cache: Path | None = None) 
                 while d["frame"] < first["frame"] + SETTLE_FRAMES:  # let the bracket planner adapt
                     d = json.loads((await ws.receive(timeout=120)).data)
         finally:
-            p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
+            stop_service(p)
     truth_map = load_scene(name).radiance_equirect(0.0)
     normals = upper_normals()
     cmp = compare_irradiance(irradiance_truth(truth_map, normals), irradiance_lights(d["lights"], normals))

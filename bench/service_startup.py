@@ -34,6 +34,17 @@ __all__ = ["exec_to_lights", "reconnect_latency", "startup_summary"]
 ROOT = Path(__file__).resolve().parent.parent
 
 
+
+def stop_service(p: subprocess.Popen[str], timeout: float = 10.0) -> int:
+    """SIGTERM a service started by a benchmark, SIGKILL it if it has not exited in ``timeout``
+    seconds; returns its exit code."""
+    p.send_signal(signal.SIGTERM)
+    try:
+        return p.wait(timeout)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        return p.wait(5)
+
 def _cpu_s(pid: int) -> float:
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -92,12 +103,7 @@ def exec_to_lights(state: Path, scene: str = "lebombo", *, fps: float = 10.0, li
         t_api, t_lights, first = asyncio.run(_first_lights(url, timeout))
         cpu = _cpu_s(p.pid)
     finally:
-        p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(5)
+        stop_service(p)
     return {"printed_s": t_print - t0, "api_s": t_api - t0, "lights_s": t_lights - t0,
             "api_to_lights_s": t_lights - t_api, "service_cpu_s": cpu, "frame": first["frame"],
             "lights": len(first["lights"]), "loadavg_1min": os.getloadavg()[0]}
