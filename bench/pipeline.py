@@ -84,9 +84,9 @@ def _per_frame(n: int) -> dict[str, Any]:
 
 
 def _accuracy(scene: str) -> dict[str, Any]:
+    from device.core.sphere import equirect_row_solid_angle
     from device.hdr.fusion import fuse_frames
     from device.projection import Projector
-    from device.sphere import equirect_row_solid_angle
 
     cam, cal, frames, exposures = asyncio.run(_capture_stack(scene))
     res = fuse_frames(frames, cal.response)
@@ -108,7 +108,7 @@ def _accuracy(scene: str) -> dict[str, Any]:
     true_upper = float(np.tensordot(omega, true_eq[: he // 2].astype(np.float64).sum(axis=1), axes=(0, 0)).sum())
     omega_p = equirect_row_solid_angle(maps.polar.shape[0] * 2, maps.polar.shape[1])[: maps.polar.shape[0]]
     polar_e = float(np.tensordot(omega_p, maps.polar.astype(np.float64).sum(axis=1), axes=(0, 0)).sum())
-    from device.healpix import pix2vec_nest, pixel_solid_angle
+    from device.core.healpix import pix2vec_nest, pixel_solid_angle
 
     # Upper hemisphere: pixels centred on the equator ring are symmetric about it (half above)
     y = pix2vec_nest(maps.nside, np.arange(maps.healpix.shape[0]))[:, 1]

@@ -63,7 +63,7 @@ def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
 
 
 def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
-    from device.sphere import luminance
+    from device.core.sphere import luminance
     from hostlink.relight.precompute import precompute
     from hostlink.relight.reference import reference_radiance
     from hostlink.relight.render import Relighter
@@ -119,7 +119,7 @@ def _timeit(fn, reps: int) -> dict[str, float]:  # type: ignore[no-untyped-def]
 def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # type: ignore[no-untyped-def]
             groups: dict[str, np.ndarray]) -> dict[str, Any]:
     """Relative RMS luminance error against brute force per map, overall and per vertex group."""
-    from device.sphere import luminance
+    from device.core.sphere import luminance
     from hostlink.relight.reference import reference_radiance
 
     ref = reference_radiance(rl, leaf_lights, eye, vidx)
@@ -279,7 +279,7 @@ def _plots(out_dir: Path, acc: dict[str, Any], speed: dict[str, Any]) -> None:
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     import os
 
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
     from hostlink.relight.directions import cluster_compactness
     from hostlink.relight.lighting import leaf_light_from_equirect
     from hostlink.relight.precompute import default_cache_dir

@@ -40,11 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from device.imageio import read_hdr_image
-from device.sampling.base import LightSet
+from device.core.imageio import read_hdr_image
+from device.core.lightset import LightSet
+from device.core.sphere import equirect_row_solid_angle, luminance
 from device.sampling.metrics import ErrorReference, fibonacci_normals, light_arrays
 from device.sampling.registry import available_samplers, make_sampler
-from device.sphere import equirect_row_solid_angle, luminance
 
 __all__ = ["SceneTruth", "run", "temporal_metrics", "temporal_run"]
 
@@ -247,7 +247,7 @@ def incremental_bench(maps: dict[str, np.ndarray], counts: tuple[int, ...], fram
     (lower half black, ``sample``) and its NESTED nside-64 map (``sample_healpix``)."""
     import cv2
 
-    from device.healpix import equirect_to_healpix
+    from device.core.healpix import equirect_to_healpix
 
     rows = []
     for name, img in maps.items():

@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from device.core.sphere import LUMINANCE_WEIGHTS
+
 __all__ = ["run", "run_accuracy"]
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -272,7 +274,7 @@ def upper_normals(n: int = 64) -> np.ndarray:
 def irradiance_truth(equirect: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Diffuse irradiance (N, 3) from the map's upper hemisphere, exact pixel sums (float64):
     E(n) = sum over pixels with y > 0 of L * Omega_pixel * max(0, n . w)."""
-    from device.sphere import equirect_directions, equirect_solid_angle
+    from device.core.sphere import equirect_directions, equirect_solid_angle
 
     h = equirect.shape[0]
     top = h // 2  # rows 0 .. h/2 - 1 are exactly the upper hemisphere
@@ -290,7 +292,7 @@ def irradiance_lights(lights: list[dict[str, Any]], normals: np.ndarray) -> np.n
 def compare_irradiance(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
     """Relative error of luminance irradiance after the best global scale s (least squares on
     relative residuals), and s itself (1 = the lights are in the simulator's unit)."""
-    w = np.array([0.2126, 0.7152, 0.0722])
+    w = LUMINANCE_WEIGHTS
     t, e = truth @ w, est @ w
     ok = t > 1e-12 * t.max()
     q = e[ok] / t[ok]

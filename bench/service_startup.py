@@ -138,9 +138,10 @@ async def _reconnect_once(state: Path, outage_s: float) -> dict[str, Any]:
     import aiohttp
     from aiohttp import web
 
-    from device.service.app import STATE, create_app
-    from device.service.cli import camera_factory, pipeline_factory
+    from device.cli.bootstrap import camera_factory, pipeline_factory
+    from device.service.app import create_app
     from device.service.config import ServiceConfig
+    from device.service.state import STATE
 
     cfg = ServiceConfig(path=state / "config.toml").with_patch(
         {"mdns": {"enabled": False}, "pipeline": {"fps": 10.0, "light_count": 256}})

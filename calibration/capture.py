@@ -1,18 +1,19 @@
-"""Captures for the calibration CLI when the probe itself is the source (``--camera SPEC``).
+"""Captures for the calibration routines when the probe itself is the source (``--camera SPEC``).
 
-The camera comes from the same factory as the service (``device.service.cli.camera_factory``:
-``sim`` with ``--scene``, ``v4l2:/dev/videoN``, ``libcamera``, ``uvc``); for the simulator the
-scene ``uniform`` is a flat field (an integrating sphere). Each routine opens the camera, captures
-through the driver protocol (metadata-verified exposures, :func:`calibration.response.capture_bracket`)
-and closes it:
+The camera is any :class:`drivers.base.Camera` (``lightprobe calibrate`` gets it from the one
+factory, :func:`device.cli.bootstrap.open_cli_camera`; for the simulator the scene ``uniform``
+is a flat field, an integrating sphere). Each routine opens the camera, captures through the
+driver protocol (metadata-verified exposures, :func:`calibration.response.capture_bracket`) and
+closes it:
 
 - :func:`sweep_bracket`: a metering sweep, one stop apart, from the first exposure where
   anything shows to the first where most of the frame is saturated (the response solve needs
   the whole code range);
 - :func:`capture_flat_field`: a linear flat-field image, averaged over frames, in a raw mode of
   the same size when the camera has one (else linearised with a response);
-- :func:`capture_map`: one HDR burst through the pipeline (fusion, projection) with the
-  photometric scale left out, so the map is in the probe's raw relative unit.
+
+The photometric routine's map (one HDR burst through the whole pipeline) is captured by the
+command layer (:func:`device.cli.bootstrap.capture_map`): the pipeline stands above calibration.
 
 Dtype policy: frames as the driver gives them (uint8 / uint16); linear images float64.
 """
@@ -20,34 +21,16 @@ Dtype policy: frames as the driver gives them (uint8 / uint16); linear images fl
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
-from device.errors import InputError
+from device.core.calibration import Response
+from device.core.errors import InputError
 from drivers.base import Camera, CameraError, Frame, PixelFormat
 
-from .model import Calibration, Response
 from .response import capture_bracket
 
-__all__ = ["capture_flat_field", "capture_map", "make_camera", "sweep_bracket"]
-
-
-def make_camera(spec: str, scene: str | None) -> Camera:
-    """An unopened camera for ``--camera SPEC`` (InputError naming ``--camera``/``--scene``)."""
-    if spec == "sim" and scene == "uniform":
-        from sim.camera import SimCamera
-        from sim.scene import Scene
-
-        return SimCamera(Scene(np.ones((32, 64, 3), np.float32), name="uniform"))
-    from device.service.cli import camera_factory
-
-    try:
-        return camera_factory(spec, scene)()  # type: ignore[no-any-return]
-    except InputError as e:
-        raise InputError(f"--camera {spec}: {e}", param=e.param or "--camera") from e
-    except (CameraError, ValueError, OSError) as e:
-        raise InputError(f"--camera {spec}: {e}", param="--camera") from e
+__all__ = ["capture_flat_field", "sweep_bracket"]
 
 
 async def _open(camera: Camera, spec: str) -> None:
@@ -120,27 +103,3 @@ async def capture_flat_field(camera: Camera, spec: str, *, frames: int = 4,
         inv = response.inverse
         return np.stack([inv[f.data[..., c].astype(np.int64), c] for c in range(3)], axis=-1)
     return (f.data.astype(np.float64) - f.black_level) / (f.white_level - f.black_level)
-
-
-async def capture_map(camera: Camera, spec: str, calibration: Calibration, *, bursts: int = 2,
-                      equirect_height: int = 128) -> np.ndarray:
-    """Equirect map (H, 2H, 3) float32 of the last of ``bursts`` HDR bursts, fused and projected
-    with ``calibration`` minus its photometric scale (the probe's raw relative unit)."""
-    from device.pipeline import Pipeline, PipelineConfig
-
-    if calibration.fisheye is None or calibration.response is None:
-        raise InputError("a map needs a fisheye and a response calibration (in --out or --state)",
-                         param="--camera")
-    pipe = Pipeline(camera, calibration.with_(photometric=None),
-                    PipelineConfig(equirect_height=equirect_height, light_count=16))
-    try:
-        await pipe.start()
-    except CameraError as e:
-        raise InputError(f"--camera {spec}: cannot open ({e})", param="--camera") from e
-    try:
-        result: Any = None
-        for _ in range(max(bursts, 1)):
-            result = await pipe.step()
-        return np.asarray(result.equirect, np.float32)
-    finally:
-        await pipe.stop()

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .model import FisheyeModel
+from device.core.calibration import FisheyeModel
 
 __all__ = [
     "BoardSpec",

@@ -1,6 +1,6 @@
 """Mounting pose: probe frame -> room frame, from installer angles or a board on the floor.
 
-Both frames are right-handed with +y up (CONVENTIONS.md); ``calibration.model.Pose`` maps
+Both frames are right-handed with +y up (CONVENTIONS.md); ``device.core.calibration.Pose`` maps
 ``x_room = R x_probe + position``.
 
 Installer angles (:func:`pose_from_angles`):
@@ -15,7 +15,7 @@ Board on the floor (:func:`pose_from_board`): the board's +x axis defines room a
 -z), its normal towards the camera defines room +y; the board origin is the inner corner with a
 black square diagonally outside it (``calibration.fisheye.orient_corners``; use a board with one
 even and one odd corner count, else the heading is ambiguous by 180 degrees); ``cv2.fisheye.solvePnP`` (OpenCV >= 4.9)
-gives the board pose in the camera frame, and ``device.sphere.CAMERA_TO_PROBE`` links camera and
+gives the board pose in the camera frame, and ``device.core.sphere.CAMERA_TO_PROBE`` links camera and
 probe frames. Dtype policy: float64 throughout.
 """
 
@@ -24,9 +24,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from device.sphere import CAMERA_TO_PROBE
-
-from .model import FisheyeModel, Pose
+from device.core.calibration import FisheyeModel, Pose
+from device.core.sphere import CAMERA_TO_PROBE
 
 __all__ = ["pose_from_angles", "pose_from_board", "rotation_angle_deg"]
 

@@ -1,11 +1,13 @@
-"""Camera response from a bracketed static scene captured by the probe itself.
+"""Camera response: the project's one Debevec-Malik solver, Robertson's estimate, raw linearity.
 
 Processed (RGB8) output: the inverse response ``exp(g(z))`` is solved from an exposure bracket
-with Debevec & Malik's least squares [1, eq. 3] (``cv2.createCalibrateDebevec``) or Robertson's
-ML estimate [2] (``cv2.createCalibrateRobertson``). OpenCV 5's Robertson can return NaN for the
-darkest codes, so :func:`clean_inverse` fills non-finite entries from their nearest finite
-neighbour and makes the table non-decreasing (``Response.from_json`` requires it). Tables are
-normalised so the mid code (128) maps to 1.
+with Debevec & Malik's least squares [1, eq. 3] (:func:`solve_debevec`, our own sparse solve:
+it also works on the tiny stacks where OpenCV's ``CalibrateDebevec`` asserts) or Robertson's ML
+estimate [2] (``cv2.createCalibrateRobertson``). ``lightprobe fuse`` (estimating a stack's own
+response) and the technicians' ``lightprobe calibrate response`` both call
+:func:`response_from_stack`. Every table goes through the one repair rule
+(:func:`device.core.calibration.repair_inverse`) and is normalised so the full-scale code maps
+to 1 (:meth:`Response.normalised`, as :meth:`Response.linear`).
 
 Raw output is linear after black-level subtraction; :func:`linearity_check` verifies that
 instead: for consecutive exposures, the ratio of summed signals over pixels valid in both frames
@@ -20,7 +22,7 @@ Dtype policy: frames uint8 / uint16; tables and statistics float64.
 References
 ----------
 .. [1] P. E. Debevec, J. Malik, "Recovering high dynamic range radiance maps from photographs",
-   SIGGRAPH 1997.
+   SIGGRAPH 1997, sec. 2.1 and the appendix's gsolve.m.
 .. [2] M. A. Robertson, S. Borman, R. L. Stevenson, "Estimation-theoretic approach to dynamic
    range enhancement using multiple exposures", J. Electronic Imaging 12(2), 2003.
 """
@@ -30,124 +32,133 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from device.core.calibration import Response, repair_inverse
+from device.core.errors import InputError
 from drivers.base import Camera, Controls, Frame
 
-from .model import Response
+__all__ = ["SMOOTHNESS", "LinearityReport", "capture_bracket", "compare_inverse", "gsolve", "linearity_check",
+           "response_from_stack", "sample_pixels", "solve_debevec"]
 
-__all__ = ["LinearityReport", "capture_bracket", "clean_inverse", "compare_inverse",
-           "gsolve", "linearity_check", "response_from_stack"]
-
-
-def clean_inverse(table: np.ndarray) -> np.ndarray:
-    """(levels, 3) float64: non-finite/non-positive entries filled, non-decreasing, mid = 1."""
-    t = np.array(table, dtype=np.float64).reshape(table.shape[0], -1)
-    out = np.empty_like(t)
-    for c in range(t.shape[1]):
-        col = t[:, c]
-        ok = np.isfinite(col) & (col > 0)
-        if not np.any(ok):
-            raise ValueError("response solve returned no finite values (is the bracket static and exposed?)")
-        idx = np.arange(col.size)
-        col = np.interp(idx, idx[ok], col[ok])  # nearest finite value at the ends
-        out[:, c] = np.maximum.accumulate(col)
-    mid = out[out.shape[0] // 2]
-    return out / np.where(mid > 0, mid, 1.0)
-
-
-def response_from_stack(images: Sequence[np.ndarray], exposures_s: Sequence[float], *,
-                        method: str = "debevec", samples: int = 400, smoothness: float = 50.0) -> Response:
-    """Inverse response of 8-bit RGB frames of one static scene at ``exposures_s``.
-
-    Raises ValueError for fewer than 2 frames, mismatched sizes or non-uint8 frames.
-    """
-    if len(images) < 2 or len(images) != len(exposures_s):
-        raise ValueError("need at least 2 frames and one exposure time per frame")
-    imgs = [np.ascontiguousarray(im) for im in images]
-    if any(im.dtype != np.uint8 or im.shape != imgs[0].shape or im.ndim != 3 for im in imgs):
-        raise ValueError("frames must be uint8 (H, W, 3) of one size")
-    times = np.asarray(exposures_s, dtype=np.float32)
-    if not np.all(np.isfinite(times) & (times > 0)):
-        raise ValueError("exposure times must be positive")
-    if method == "debevec":
-        stack = np.stack(imgs)  # (P, H, W, 3)
-        table = np.stack([np.exp(gsolve(stack[..., c], times.astype(np.float64), samples, smoothness))
-                          for c in range(3)], axis=1)
-    elif method == "robertson":
-        table = cv2.createCalibrateRobertson().process(imgs, times).reshape(256, 3)
-    else:
-        raise ValueError(f"unknown response method {method!r} (debevec or robertson)")
-    return Response("table", 8, clean_inverse(table), method)
+LEVELS = 256
+SMOOTHNESS = 160.0  # lambda per data row (gsolve); the sim bracket and synthetic stacks hold at it
 
 
 def _hat(z: np.ndarray) -> np.ndarray:
     """Debevec-Malik weight w(z) = min(z, 255 - z) + 1 [1, eq. 4] (never zero)."""
-    return np.minimum(z, 255 - z).astype(np.float64) + 1.0
+    return np.minimum(z, LEVELS - 1 - z).astype(np.float64) + 1.0
 
 
-def _pick_samples(stack: np.ndarray, n: int) -> np.ndarray:
-    """Flat pixel indices of ``n`` samples spread over the value range of the middle frame,
-    skipping pixels black in every frame (outside a fisheye's image circle) or always saturated."""
-    flat = stack.reshape(stack.shape[0], -1)
-    useful = np.flatnonzero((flat.max(axis=0) > 8) & (flat.min(axis=0) < 247))
+def sample_pixels(frames: Sequence[np.ndarray], channel: int, count: int = 256, seed: int = 0) -> np.ndarray:
+    """Flat pixel indices of about ``count`` samples, stratified over the values of the middle
+    exposure so every part of the curve is constrained (the paper's N (P - 1) > 255 advice),
+    skipping pixels that never change (black in every frame, e.g. outside a fisheye's image
+    circle, or saturated in every frame) when enough others exist. Deterministic."""
+    stack = np.stack([np.asarray(f)[..., channel].ravel() for f in frames])
+    useful = np.flatnonzero((stack.max(axis=0) > 8) & (stack.min(axis=0) < LEVELS - 9))
     if useful.size < 16:
-        raise ValueError("bracket has too few pixels that change with exposure")
-    mid = flat[flat.shape[0] // 2, useful].astype(np.int64)
-    rng = np.random.default_rng(0)
-    picks = []
-    per = max(1, n // 64)
-    for lo in range(0, 256, 4):  # stratified by value: every part of the curve is constrained
-        cand = useful[(mid >= lo) & (mid < lo + 4)]
+        useful = np.arange(stack.shape[1])  # tiny or flat stacks: take what there is
+    mid = stack[stack.shape[0] // 2, useful]
+    rng = np.random.default_rng(seed)
+    bins = min(count, 64)
+    per = max(1, count // bins)
+    picks: list[np.ndarray] = []
+    for lo in np.linspace(0, LEVELS, bins + 1)[:-1]:
+        cand = useful[(mid >= lo) & (mid < lo + LEVELS / bins)]
         if cand.size:
             picks.append(rng.choice(cand, size=min(per, cand.size), replace=False))
-    out = np.concatenate(picks)
-    if out.size < n:
-        out = np.union1d(out, rng.choice(useful, size=min(n - out.size, useful.size), replace=False))
-    return out
+    out = np.concatenate(picks) if picks else np.empty(0, np.int64)
+    if out.size < count:  # top up with uniformly random useful pixels
+        extra = rng.choice(useful, size=min(count - out.size, useful.size), replace=False)
+        out = np.union1d(out, extra)
+    return np.unique(out.astype(np.int64))
 
 
-def gsolve(stack: np.ndarray, times: np.ndarray, samples: int = 200, smoothness: float = 10.0) -> np.ndarray:
-    """Debevec-Malik log inverse response g(z), z = 0..255, of one channel [1, eq. 3].
+def gsolve(z: np.ndarray, log_t: np.ndarray, smoothness: float) -> np.ndarray:
+    """gsolve.m [1]: samples ``z`` (N, P) ints, ``log_t`` (P,) -> g (256,) with g(128) = 0.
 
-    ``stack`` is (P, H, W) uint8. Minimises
-    ``sum w(z_ij) (g(z_ij) - ln E_i - ln t_j)^2 + lambda sum w(z) g''(z)^2`` with g(128) = 0,
-    solved through the sparse normal equations (float64).
+    Minimises ``sum_ij [w(z_ij) (g(z_ij) - ln X_i - ln t_j)]^2 + lambda sum_z [w(z) g''(z)]^2``
+    (eq. 3) through its sparse normal equations (SuperLU, float64: no multi-threaded dense LAPACK,
+    which crawls on a busy 2-core board). ``lambda`` is per data row: the smoothness term is
+    scaled by ``N P / 256`` so that the balance does not change with the number of samples.
     """
-    P = stack.shape[0]
-    idx = _pick_samples(stack, samples)
-    Z = stack.reshape(P, -1)[:, idx].T.astype(np.int64)  # (N, P)
-    N = Z.shape[0]
-    n_eq = N * P + 1 + 254
-    rows_l, cols_l, vals_l = [], [], []
-    b = np.zeros(n_eq)
-    # Data fit: w (g(z_ij) - ln E_i) = w ln t_j  [1, eq. 3]
-    w = _hat(Z).ravel()
-    rows = np.arange(N * P)
-    rows_l += [rows, rows]
-    cols_l += [Z.ravel(), 256 + np.repeat(np.arange(N), P)]
-    vals_l += [w, -w]
-    b[rows] = w * np.tile(np.log(times), N)
-    # Fix the scale: g(128) = 0
-    rows_l.append(np.array([N * P]))
-    cols_l.append(np.array([128]))
-    vals_l.append(np.array([1.0]))
-    # Smoothness: lambda w(z) (g(z-1) - 2 g(z) + g(z+1)) = 0
-    z = np.arange(1, 255)
-    r = N * P + 1 + np.arange(254)
-    ws = smoothness * _hat(z)
-    rows_l += [r, r, r]
-    cols_l += [z - 1, z, z + 1]
-    vals_l += [ws, -2 * ws, ws]
-    A = sp.csr_matrix((np.concatenate(vals_l), (np.concatenate(rows_l), np.concatenate(cols_l))),
-                      shape=(n_eq, 256 + N))
-    # Normal equations of the sparse system (well conditioned: every unknown is tied to data
-    # or to its neighbours); float64 throughout.
-    sol = spla.spsolve((A.T @ A).tocsc(), A.T @ b)
-    return sol[:256]
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    n, p = z.shape
+    w = _hat(z).ravel()
+    k = np.arange(n * p)
+    ii = np.repeat(np.arange(n), p)
+    # Data term w (g(Z_ij) - ln X_i) = w ln t_j                                            (eq. 3)
+    rows, cols, vals = [k, k], [z.ravel(), LEVELS + ii], [w, -w]
+    b = [w * np.tile(log_t, n)]
+    r0 = n * p
+    # Fix the curve: g(128) = 0
+    rows.append(np.array([r0]))
+    cols.append(np.array([LEVELS // 2]))
+    vals.append(np.array([1.0]))
+    b.append(np.zeros(1))
+    # Smoothness sqrt(lambda) w(z) g''(z) = 0 for z = 1..254                                (eq. 3)
+    zz = np.arange(1, LEVELS - 1)
+    wz = np.sqrt(smoothness * n * p / LEVELS) * _hat(zz)
+    rr = r0 + 1 + np.arange(zz.size)
+    for off, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):
+        rows.append(rr)
+        cols.append(zz + off)
+        vals.append(coef * wz)
+    b.append(np.zeros(zz.size))
+    a = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(r0 + 1 + zz.size, LEVELS + n))
+    rhs = np.concatenate(b)
+    # Unsampled levels and pixels would make the normal matrix singular: a tiny ridge
+    m = (a.T @ a + 1e-9 * sp.identity(LEVELS + n)).tocsc()
+    sol = spla.spsolve(m, a.T @ rhs)
+    return np.asarray(sol[:LEVELS], dtype=np.float64)
+
+
+def solve_debevec(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothness: float = SMOOTHNESS,
+                  samples: int = 256) -> Response:
+    """Inverse response (256, 3) of 8-bit RGB frames of one static scene at ``times`` [1]."""
+    if len(frames) < 2:
+        raise InputError("estimating a response needs at least 2 exposures (or give --response)",
+                         param="--response")
+    t = np.asarray(times, dtype=np.float64)
+    if t.shape != (len(frames),) or not np.all(np.isfinite(t) & (t > 0)):
+        raise InputError("exposure times must be positive, one per frame", param="times")
+    if not np.isfinite(smoothness) or smoothness <= 0:
+        raise InputError(f"smoothness {smoothness!r} must be positive", param="--smoothness")
+    inv = np.empty((LEVELS, 3))
+    for c in range(3):
+        idx = sample_pixels(frames, c, samples)
+        z = np.stack([np.asarray(f)[..., c].ravel()[idx] for f in frames], axis=1).astype(np.int64)
+        inv[:, c] = np.exp(np.clip(gsolve(z, np.log(t), smoothness), -700, 700))
+    return Response("table", 8, repair_inverse(inv), "debevec").normalised()
+
+
+def response_from_stack(images: Sequence[np.ndarray], exposures_s: Sequence[float], *,
+                        method: str = "debevec", samples: int = 400, smoothness: float = SMOOTHNESS) -> Response:
+    """Inverse response of 8-bit RGB frames of one static scene at ``exposures_s``.
+
+    Raises InputError (a ValueError) for fewer than 2 frames, mismatched sizes, non-uint8
+    frames or a failed solve.
+    """
+    if len(images) < 2 or len(images) != len(exposures_s):
+        raise InputError("need at least 2 frames and one exposure time per frame", param="times")
+    imgs = [np.ascontiguousarray(im) for im in images]
+    if any(im.dtype != np.uint8 or im.shape != imgs[0].shape or im.ndim != 3 for im in imgs):
+        raise InputError("frames must be uint8 (H, W, 3) of one size", param="IMG")
+    if method == "debevec":
+        return solve_debevec(imgs, exposures_s, smoothness=smoothness, samples=samples)
+    if method == "robertson":
+        import cv2
+
+        times = np.asarray(exposures_s, dtype=np.float32)
+        if not np.all(np.isfinite(times) & (times > 0)):
+            raise InputError("exposure times must be positive", param="times")
+        table = cv2.createCalibrateRobertson().process(imgs, times).reshape(LEVELS, 3)
+        return Response("table", 8, repair_inverse(table), method).normalised()
+    raise InputError(f"unknown response method {method!r} (debevec or robertson)", param="--method")
 
 
 def compare_inverse(estimate: Response, truth: Response, lo: int = 16, hi: int = 240) -> float:

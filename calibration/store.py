@@ -22,17 +22,20 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from device.errors import InputError
-from device.fsutil import atomic_write
+from device.core.calibration import Calibration
+from device.core.errors import InputError
+from device.core.fsutil import atomic_write
 
-from .model import Calibration
+__all__ = ["CalibrationStore", "CorruptCalibration", "LoadResult", "Version", "atomic_write",
+           "load_calibration"]
 
-__all__ = ["CalibrationStore", "CorruptCalibration", "LoadResult", "Version", "atomic_write"]
+log = logging.getLogger(__name__)
 
 _NAME = re.compile(r"^(\d{6,})-([0-9a-f]{16})\.json$")
 
@@ -177,3 +180,35 @@ class CalibrationStore:
             for p in d.glob(".*.tmp"):
                 with contextlib.suppress(OSError):
                     p.unlink()
+
+
+def load_calibration(state_dir: str | os.PathLike[str], camera: object) -> Calibration:
+    """The calibration a probe uses, in this order:
+
+    1. the calibration store in ``state_dir`` (the current version, or the newest valid earlier
+       one when current is corrupt, with the error logged);
+    2. ``state_dir/calibration.json`` (a file an installer copied in by hand);
+    3. the camera's own (``Camera.factory_calibration``: the simulator's ground truth).
+
+    A camera with none of these gets an InputError naming what to do.
+    """
+    state = Path(state_dir)
+    store = CalibrationStore(state)
+    found = store.load()
+    if store.versions():  # a store that exists but is damaged: say so (a fresh unit has none)
+        for err in found.errors:
+            log.error("calibration store: %s", err)
+    if found.calibration is not None:
+        return found.calibration
+    p = state / "calibration.json"
+    if p.exists():
+        try:
+            return Calibration.from_json(json.loads(p.read_text(encoding="utf-8")))
+        except (OSError, ValueError) as e:
+            raise InputError(f"{p}: {e}", param="calibration") from e
+    own = getattr(camera, "factory_calibration", None)
+    cal = own() if callable(own) else None
+    if cal is not None:
+        return cal  # type: ignore[no-any-return]
+    raise InputError(f"no calibration for camera {getattr(camera, 'name', '?')!r} in {state} "
+                     "(make one with 'lightprobe calibrate fisheye ... --state DIR')", param="calibration")

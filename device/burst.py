@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.model import FisheyeModel, Response
+from device.core.calibration import FisheyeModel, Response
 from drivers.base import Camera, CaptureTimeout, Controls, Frame
 
 __all__ = [

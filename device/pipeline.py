@@ -35,8 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from calibration.model import Calibration
-from device.errors import InputError
+from device.core.calibration import Calibration
+from device.core.errors import InputError
+from device.core.sphere import luminance
 from drivers.base import Camera, Frame
 
 __all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "tone_map"]
@@ -121,7 +122,7 @@ def tone_map(radiance: np.ndarray, valid: np.ndarray | None = None, width: int =
 
 def _coarse_energy(healpix: np.ndarray) -> np.ndarray:
     """Luminance energy per HEALPix pixel at nside 8 (NESTED children are contiguous)."""
-    lum = np.asarray(healpix, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    lum = luminance(np.asarray(healpix, np.float64))
     n = lum.shape[0] // (12 * _CHANGE_NSIDE * _CHANGE_NSIDE)
     return lum.reshape(-1, max(n, 1)).sum(axis=1) if n >= 1 else lum
 
@@ -323,7 +324,7 @@ class Pipeline:
             other core while this thread projects and samples."""
             try:
                 side["rates"] = exposure_rates(fused.radiance, full_scale)
-                lum = (fused.radiance[valid] * scale) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+                lum = luminance(fused.radiance[valid] * np.float32(scale))
                 with np.errstate(divide="ignore"):
                     side["hist"] = np.histogram(np.log2(lum[lum > 0]), bins=HISTOGRAM_EDGES_LOG2)[0]
                 side["preview"] = tone_map(fused.radiance, valid)

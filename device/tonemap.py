@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from device.core.sphere import LUMINANCE_WEIGHTS
+
 __all__ = ["LUMINANCE", "log_average_key", "tone_map"]
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 / sRGB luminance weights
+LUMINANCE = LUMINANCE_WEIGHTS.astype(np.float32)  # Rec. 709 / sRGB luminance weights
 MIDDLE_GREY = 0.18
 TRIM = 0.01
 

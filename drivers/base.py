@@ -22,11 +22,15 @@ import abc
 import enum
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from device.core.calibration import Calibration
+
 __all__ = [
+    "BoardTarget",
     "Camera",
     "CameraBusy",
     "CameraDisconnected",
@@ -42,6 +46,16 @@ __all__ = [
     "Mode",
     "PixelFormat",
 ]
+
+
+@dataclass(frozen=True)
+class BoardTarget:
+    """A checkerboard to present for calibration: inner corners and the side of a square (in the
+    session's unit; the simulator renders it in metres)."""
+
+    cols: int
+    rows: int
+    square: float
 
 
 # ---- Errors -------------------------------------------------------------------------------------
@@ -199,6 +213,18 @@ class Camera(abc.ABC):
     @abc.abstractmethod
     async def capture(self, timeout: float = 1.0) -> Frame:  # noqa: ASYNC109 - part of the protocol
         """The next frame. Raises CaptureTimeout, CameraDisconnected."""
+
+    # -- optional capabilities (defaults: the camera has none) --
+    def factory_calibration(self) -> Calibration | None:
+        """A calibration the camera itself carries (a module's EEPROM; the simulator's ground
+        truth), used only when the state directory has none. None by default."""
+        return None
+
+    def present_board(self, board: BoardTarget | None) -> bool:
+        """Put a calibration board in front of the lens (a bench rig with an arm; the simulator's
+        technician) for a live calibration session, or take it away (None). Returns whether the
+        camera did so; by default it cannot (a technician holds the board)."""
+        return False
 
     # -- helpers shared by backends --
     def check_controls(self, controls: Controls) -> None:

@@ -15,8 +15,8 @@ import json
 import sys
 from typing import Any
 
-from device.cli import run_command
-from device.errors import InputError
+from device.core.command import run_command
+from device.core.errors import InputError
 from drivers.base import CameraDisconnected, CameraError, CameraUnavailable
 
 __all__ = ["main"]
@@ -35,8 +35,11 @@ def _parser() -> argparse.ArgumentParser:
 def _list(as_json: bool) -> int:
     from drivers.discovery import list_cameras
 
+    from drivers.discovery import camera_plugins
+
     cams = list_cameras()
-    hardware = [c for c in cams if c.kind != "sim"]
+    plugins = set(camera_plugins())
+    hardware = [c for c in cams if c.kind not in plugins]
     if as_json:
         print(json.dumps({"hardware_found": bool(hardware), "cameras": [c.to_json() for c in cams]}, indent=2))
         return 0

@@ -1,10 +1,17 @@
 """Which cameras are attached, and ``open_camera(spec)`` for ``--camera``.
 
-Specs (CONVENTIONS.md): ``sim``, ``v4l2:/dev/videoN`` (or a ``/dev/v4l/by-id/...`` path, which is
+Specs (CONVENTIONS.md): ``v4l2:/dev/videoN`` (or a ``/dev/v4l/by-id/...`` path, which is
 preferred: it survives replugs; a ``/dev/videoN`` path is swapped for its by-id link when there is
 one), ``libcamera`` or ``libcamera:N``, ``uvc`` / ``uvc:VID:PID`` (hex; the UVC camera's V4L2 node,
 with UVC-over-USB controls as a fallback) and ``auto`` (libcamera, else the first V4L2 capture
-node that opens, else the simulator; the choice is logged).
+node that opens; the choice is logged). ``auto`` never picks a simulated camera: with no
+hardware it raises :class:`NoCameraFound` (a :class:`CameraUnavailable`: a service keeps
+retrying and says why in its status; a command line exits 2).
+
+Camera plugins. Any other kind is looked up in the ``lightprobe.cameras`` entry-point group
+(``pyproject.toml``): the simulator registers ``sim`` and ``v4l2-fake`` (the fake UVC kernel
+behind the real V4L2 driver) there, so production code never imports it; a plugin is
+``factory(arg, **options) -> Camera`` and takes the options it knows (``scene``, ``cache_dir``).
 
 :func:`list_cameras` looks at ``/dev/v4l/by-id``, ``/dev/video*`` capture nodes, pyusb's UVC
 devices and picamera2 (when importable), probing each (QUERYCAP, modes, exposure range) without
@@ -23,11 +30,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from device.errors import InputError
+from device.core.errors import InputError
 from drivers.base import Camera, CameraBusy, CameraError, CameraUnavailable
 
 __all__ = [
+    "PLUGIN_GROUP",
     "CameraInfo",
+    "NoCameraFound",
     "find_v4l2_node_for_usb",
     "list_cameras",
     "open_camera",
@@ -38,9 +47,22 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 BY_ID = "/dev/v4l/by-id"
-SPEC_HELP = "sim|v4l2:/dev/videoN|libcamera[:N]|uvc[:VID:PID]|auto"
+SPEC_HELP = "v4l2:/dev/videoN|libcamera[:N]|uvc[:VID:PID]|auto, or a plugin: sim|v4l2-fake"
+PLUGIN_GROUP = "lightprobe.cameras"
+_BUILTIN = ("auto", "v4l2", "libcamera", "uvc")
 # V4L2 nodes that belong to libcamera's pipelines (ISP, CSI receivers): not cameras on their own.
 _LIBCAMERA_INTERNAL = ("unicam", "rp1-cfe", "bcm2835-isp", "pispbe", "bcm2835-codec", "rpivid")
+
+
+class NoCameraFound(CameraUnavailable):
+    """``--camera auto`` found no camera hardware (the simulator is never a fallback)."""
+
+
+def camera_plugins() -> dict[str, Any]:
+    """Entry points of the ``lightprobe.cameras`` group by kind (not loaded)."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=PLUGIN_GROUP)}
 
 
 @dataclass
@@ -63,11 +85,11 @@ def parse_spec(spec: str) -> tuple[str, str]:
     """Split and validate a ``--camera`` value: (kind, argument). InputError when malformed."""
     kind, _, arg = spec.strip().partition(":")
     ok = (
-        (kind in ("sim", "auto") and not arg)
+        (kind == "auto" and not arg)
         or (kind == "v4l2" and arg.startswith("/"))  # an absolute path to the node
         or (kind == "libcamera" and (not arg or arg.isdigit()))
         or (kind == "uvc" and (not arg or _parse_vid_pid(arg) is not None))
-        or kind == "v4l2-fake"
+        or (kind not in _BUILTIN and not arg and kind in camera_plugins())
     )
     if not ok:
         raise InputError(f"--camera {spec!r}: expected {SPEC_HELP}", param="--camera")
@@ -197,8 +219,9 @@ def _list_libcamera() -> list[CameraInfo]:
 
 
 def list_cameras(*, by_id_dir: str = BY_ID, dev_glob: str = "/dev/video*", usb_backend: Any = None,
-                 include_libcamera: bool = True, include_sim: bool = True) -> list[CameraInfo]:  # fmt: skip
-    """Every camera we can see, hardware first; the simulator last (always available)."""
+                 include_libcamera: bool = True, include_plugins: bool = True) -> list[CameraInfo]:  # fmt: skip
+    """Every camera we can see, hardware first; then the installed camera plugins (the
+    simulator), which ``auto`` never picks."""
     found: list[CameraInfo] = []
     if include_libcamera:
         found += _list_libcamera()
@@ -207,21 +230,21 @@ def list_cameras(*, by_id_dir: str = BY_ID, dev_glob: str = "/dev/video*", usb_b
         if info is not None:
             found.append(info)
     found += _list_uvc(usb_backend)
-    if include_sim:
-        found.append(CameraInfo("sim", "sim", "simulated probe camera (sim.camera.SimCamera)"))
+    if include_plugins:
+        for kind, ep in sorted(camera_plugins().items()):
+            found.append(CameraInfo(kind, kind, f"camera plugin {ep.value}", "available (plugin)"))
     return found
 
 
 # ---- opening ------------------------------------------------------------------------------------
 def open_camera(spec: str, *, usb_backend: Any = None, frame_source: Any = None,
-                by_id_dir: str = BY_ID, sys_root: str = "/sys", **sim_kwargs: Any) -> Camera:  # fmt: skip
-    """A (not yet opened) camera for a ``--camera`` spec. InputError for a malformed spec;
-    CameraUnavailable when the spec names hardware that is not there."""
-    kind, arg = parse_spec(spec)
-    if kind == "sim":
-        from sim.camera import SimCamera
+                by_id_dir: str = BY_ID, sys_root: str = "/sys", **options: Any) -> Camera:  # fmt: skip
+    """The one camera factory: a (not yet opened) camera for a ``--camera`` spec.
 
-        return SimCamera(**sim_kwargs)
+    InputError for a malformed spec; CameraUnavailable when the spec names hardware that is not
+    there (:class:`NoCameraFound` for ``auto``). ``options`` go to a plugin camera (the
+    simulator's ``scene``, ``cache_dir``, ...); hardware backends take none."""
+    kind, arg = parse_spec(spec)
     if kind == "v4l2":
         from drivers.v4l2.camera import V4L2Camera
 
@@ -229,19 +252,16 @@ def open_camera(spec: str, *, usb_backend: Any = None, frame_source: Any = None,
         if path != arg:
             log.info("using stable path %s for %s", path, arg)
         return V4L2Camera(path)
-    if kind == "v4l2-fake":
-        from drivers.v4l2.camera import V4L2Camera
-        from drivers.v4l2.fake import FakeV4L2Node
-
-        node = FakeV4L2Node()
-        return V4L2Camera(node.path, opener=node.open)
     if kind == "libcamera":
         from drivers.libcamera import Picamera2Camera
 
         return Picamera2Camera(int(arg or 0))
     if kind == "uvc":
         return _open_uvc(arg, usb_backend, frame_source, by_id_dir, sys_root)
-    return _auto(by_id_dir, **sim_kwargs)
+    if kind == "auto":
+        return _auto(by_id_dir)
+    factory = camera_plugins()[kind].load()
+    return factory(arg, **options)  # type: ignore[no-any-return]
 
 
 def _open_uvc(arg: str, usb_backend: Any, frame_source: Any, by_id_dir: str, sys_root: str) -> Camera:
@@ -266,15 +286,14 @@ def _open_uvc(arg: str, usb_backend: Any, frame_source: Any, by_id_dir: str, sys
     )  # fmt: skip
 
 
-def _auto(by_id_dir: str, **sim_kwargs: Any) -> Camera:
-    for info in list_cameras(by_id_dir=by_id_dir, include_sim=False):
+def _auto(by_id_dir: str) -> Camera:
+    for info in list_cameras(by_id_dir=by_id_dir, include_plugins=False):
         if info.status == "available" and info.kind in ("libcamera", "v4l2"):
             log.info("--camera auto: using %s (%s)", info.spec, info.name)
             return open_camera(info.spec, by_id_dir=by_id_dir)
-    from sim.camera import SimCamera
-
-    log.info("--camera auto: no camera hardware found, using the simulator")
-    return SimCamera(**sim_kwargs)
+    raise NoCameraFound("--camera auto: no camera hardware found (libcamera, V4L2 capture nodes in "
+                        f"{by_id_dir} and /dev/video*); name the simulator with --camera sim",
+                        device="auto")
 
 
 async def open_with_retry(camera: Camera, *, initial_s: float = 0.5, max_s: float = 30.0,

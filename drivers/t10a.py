@@ -30,7 +30,7 @@ from typing import Any, Self
 
 import serial
 
-from device.errors import LightprobeError
+from device.core.errors import LightprobeError
 
 __all__ = [
     "T10A",

@@ -11,7 +11,7 @@ The public, typed surface (everything else is internal)::
 - :mod:`hostlink.merge`: Nikodym et al. 2013 Algorithm 2 (:func:`merge_q2trees`), index
   interpolation (:func:`merge_indexed`), distance weights (:func:`probe_weights`),
   :func:`merge_probes` with failed probes dropping out.
-- :mod:`hostlink.q2encode`: the compact binary Q2-Tree encoding (:func:`encode_q2tree`,
+- :mod:`device.core.q2wire`: the compact binary Q2-Tree encoding (:func:`encode_q2tree`,
   :func:`decode_q2tree`, :class:`Q2DecodeError`).
 - :class:`MergedStream` (``hostlink.stream``): a live merged stream over several probes.
 
@@ -24,6 +24,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from device.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree, encode_q2tree
     from hostlink.client import (
         ProbeAuthError,
         ProbeClient,
@@ -41,7 +42,6 @@ if TYPE_CHECKING:
         merge_q2trees,
         probe_weights,
     )
-    from hostlink.q2encode import Q2DecodeError, Q2Tree, decode_q2tree, encode_q2tree
     from hostlink.stream import MergedStream
 
 _EXPORTS = {
@@ -60,10 +60,10 @@ _EXPORTS = {
     "merge_probes": "hostlink.merge",
     "merge_q2trees": "hostlink.merge",
     "probe_weights": "hostlink.merge",
-    "Q2DecodeError": "hostlink.q2encode",
-    "Q2Tree": "hostlink.q2encode",
-    "decode_q2tree": "hostlink.q2encode",
-    "encode_q2tree": "hostlink.q2encode",
+    "Q2DecodeError": "device.core.q2wire",
+    "Q2Tree": "device.core.q2wire",
+    "decode_q2tree": "device.core.q2wire",
+    "encode_q2tree": "device.core.q2wire",
     "MergedStream": "hostlink.stream",
 }
 

@@ -46,7 +46,7 @@ async def _discover(a: argparse.Namespace) -> list[dict[str, object]]:
 
 
 def _run(argv: list[str]) -> int:
-    from device.errors import InputError
+    from device.core.errors import InputError
 
     a = build_parser().parse_args(argv)
     if not 0 < a.timeout <= 3600:
@@ -71,6 +71,6 @@ def _run(argv: list[str]) -> int:
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.core.command import run_command
 
     return run_command(_run, argv)

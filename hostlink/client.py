@@ -1,7 +1,7 @@
 """An aiohttp client for one probe's HTTP/WebSocket API (``/api/v1``, see CONVENTIONS.md).
 
 :class:`ProbeClient` reads the status, light sets (``LightSet.from_json``), the HDR map (OpenEXR
-through ``device.imageio``) and the Q2-Tree encoding (:mod:`hostlink.q2encode`), and follows the
+through ``device.core.imageio``) and the Q2-Tree encoding (:mod:`device.core.q2wire`), and follows the
 WebSocket stream with :meth:`ProbeClient.subscribe`: on a dropout the last light set is
 re-delivered once marked ``stale``, then the client reconnects with exponential backoff
 (``backoff_initial`` doubling up to ``backoff_max``, reset after a good connection).
@@ -27,9 +27,9 @@ from typing import Any
 import aiohttp
 import numpy as np
 
-from device.errors import InputError, LightprobeError
-from device.sampling.base import LightSet
-from hostlink.q2encode import Q2DecodeError, Q2Tree, decode_q2tree
+from device.core.errors import InputError, LightprobeError
+from device.core.lightset import LightSet
+from device.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree
 
 __all__ = [
     "ProbeAuthError",
@@ -232,7 +232,7 @@ def _lightset(d: Any, url: str) -> LightSet:
 
 
 def _read_exr_bytes(data: bytes, url: str) -> np.ndarray:
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     fd, tmp = tempfile.mkstemp(suffix=".exr")
     try:

@@ -85,7 +85,7 @@ class ProbeEvent:
 def _ipv4(text: str) -> str:
     import ipaddress
 
-    from device.errors import InputError
+    from device.core.errors import InputError
 
     try:
         return str(ipaddress.IPv4Address(text.strip()))
@@ -96,7 +96,7 @@ def _ipv4(text: str) -> str:
 
 def parse_address(text: str) -> tuple[str, int]:
     """``host:port`` (or ``http://host:port[/...]``, ``[v6]:port``) -> (host, port)."""
-    from device.errors import InputError
+    from device.core.errors import InputError
 
     s = text.strip()
     if "://" in s:

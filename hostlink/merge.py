@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import LightprobeError
-from device.sampling.base import LightSet
-from device.sphere import LUMINANCE_WEIGHTS
-from hostlink.q2encode import Q2Tree, _levels
+from device.core.errors import LightprobeError
+from device.core.lightset import LightSet
+from device.core.q2wire import Q2Tree, jitter_directions, uniq_levels
+from device.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = [
     "MergeError",
@@ -102,7 +102,7 @@ class MergedTree:
 
     @property
     def level(self) -> np.ndarray:
-        return _levels(self.nodes)
+        return uniq_levels(self.nodes)
 
 
 def _ancestors(leaves: np.ndarray) -> np.ndarray:
@@ -142,7 +142,7 @@ def merge_tree_nodes(trees: Sequence[Q2Tree], weights: np.ndarray | None = None)
     interior = _ancestors(all_leaves)
     leaves = np.setdiff1d(all_leaves, interior, assume_unique=True)
     nodes = np.union1d(leaves, interior)
-    level = _levels(nodes)
+    level = uniq_levels(nodes)
     is_leaf = np.isin(nodes, leaves, assume_unique=True)
     rgb = np.zeros((len(nodes), 3))
     # Merged leaf values: sum_i w_i R_i(ancestor-or-self leaf) / 4^(level difference)
@@ -245,10 +245,8 @@ def merge_q2trees(trees: Sequence[Q2Tree], count: int, weights: np.ndarray | Non
     leaves = np.sort(cand[~np.isin(cand, kept_ids)])
     pos = np.searchsorted(nodes, leaves)
     rgb = merged.rgb[pos]
-    level = _levels(leaves)
+    level = uniq_levels(leaves)
     omega = 4.0 * np.pi / (12.0 * 4.0**level)
-    from device.sampling.q2tree._nodes import jitter_directions
-
     dirs = jitter_directions(leaves, seed, jitter_extent)
     groups = _groups(leaves, count, nodes, kept, eff)
     ids = leaves

@@ -22,7 +22,7 @@ from typing import Any
 import aiohttp
 import numpy as np
 
-from device.sampling.base import LightSet
+from device.core.lightset import LightSet
 from hostlink.client import ProbeClient, ProbeError
 from hostlink.discovery import Discovery, ProbeInfo
 from hostlink.merge import MergeError, ProbeInput, merge_probes

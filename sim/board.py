@@ -1,7 +1,7 @@
 """Checkerboard views rendered through a known fisheye lens, for testing the calibration.
 
 Each sensor sub-pixel is unprojected to a camera ray with the true KB4 model
-(:meth:`calibration.model.FisheyeModel.unproject`), intersected with the board plane and shaded
+(:meth:`device.core.calibration.FisheyeModel.unproject`), intersected with the board plane and shaded
 by the checker pattern; ``supersample`` x ``supersample`` sub-pixels per pixel give
 anti-aliasing, then Gaussian noise and 8-bit quantisation. The rays are computed once per
 renderer, so a view costs one plane intersection per sub-pixel.
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from calibration.model import FisheyeModel
+from device.core.calibration import FisheyeModel
 
 if TYPE_CHECKING:
     from .lens import SimLens

@@ -36,8 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from calibration.model import Calibration, LensMask, Photometric, Pose
+from device.core.calibration import Calibration, LensMask, Photometric, Pose
 from drivers.base import (
+    BoardTarget,
     Camera,
     CameraDisconnected,
     CameraError,
@@ -115,6 +116,7 @@ class SimCamera(Camera):
         self.sensor = sensor or SensorModel()
         self.faults = FaultPlan()
         self._board: tuple[Any, float] | None = None  # (sim.board.BoardSchedule, start time)
+        self._technician = False  # the board shown is present_board's simulated technician
         self._caps = Capabilities(exposure_range=exposure_range, gain_range=gain_range,
                                   modes=tuple(modes), has_frame_metadata=True,
                                   control_latency_frames=int(latency_frames),
@@ -295,6 +297,28 @@ class SimCamera(Camera):
     def board_schedule(self) -> Any:
         """The :class:`sim.board.BoardSchedule` shown now (``show_board``), or None."""
         return None if self._board is None else self._board[0]
+
+    def present_board(self, board: BoardTarget | None) -> bool:
+        """The simulated technician (the protocol's optional capability): nobody stands in front
+        of a simulated lens, so for a live calibration session a technician
+        (:meth:`sim.board.BoardSchedule.technician`) sweeps ``board`` through the image circle;
+        ``None`` takes it away. A schedule a test already shows (``show_board``) is kept."""
+        if board is None:
+            if self._technician:
+                self.show_board(None)
+                self._technician = False
+            return True
+        if self._board is not None:
+            return True  # a test's own schedule is in front already
+        from .board import BoardSchedule
+
+        self.show_board(BoardSchedule.technician(board.cols, board.rows, board.square))
+        self._technician = True
+        return True
+
+    def factory_calibration(self) -> Calibration:
+        """The simulator carries its ground truth (:meth:`truth_calibration`)."""
+        return self.truth_calibration()
 
     def show_board(self, schedule: Any) -> None:
         """Show a technician's checkerboard (a :class:`sim.board.BoardSchedule`) over the scene

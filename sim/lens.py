@@ -1,7 +1,7 @@
 """The simulated fisheye lens: KB4 geometry, vignetting, housing ring and the area-correct render.
 
-The lens is an OpenCV fisheye (Kannala-Brandt KB4, ``calibration.model.FisheyeModel``) looking
-up: camera directions go to the probe frame through ``device.sphere.CAMERA_TO_PROBE``. Its image
+The lens is an OpenCV fisheye (Kannala-Brandt KB4, ``device.core.calibration.FisheyeModel``) looking
+up: camera directions go to the probe frame through ``device.core.sphere.CAMERA_TO_PROBE``. Its image
 circle spans ``circle_deg`` (187 deg) and fits the sensor height (radius 236 px of 480); the
 outermost ``ring_deg`` (1 deg of polar angle) is the dark housing ring (transmission
 ``ring_transmission`` = 3%), so the clean field of view, :attr:`SimLens.fov_deg`, is
@@ -40,8 +40,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.model import FisheyeModel, Vignetting
-from device.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
+from device.core.calibration import FisheyeModel, Vignetting
+from device.core.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
 
 __all__ = ["DEFAULT_D", "SimLens", "make_lens", "standard_lens", "theta_d_prime"]
 

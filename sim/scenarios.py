@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.errors import InputError
-from device.sphere import directions_from_angles, equirect_directions
+from device.core.errors import InputError
+from device.core.sphere import directions_from_angles, equirect_directions
 
 from .scene import DynamicLight, Scene
 
@@ -155,6 +155,7 @@ def _daylight(scene: Scene, rng: np.random.Generator) -> None:
     scene.lights.append(DynamicLight("sun", np.deg2rad(0.27), (1.5e4, 1.45e4, 1.35e4), direction))
 
 
+UNIFORM = "uniform"
 SCENARIOS: dict[str, Callable[[Scene, np.random.Generator], None] | None] = {
     "room": None,
     "flashlight": _flashlight,
@@ -172,7 +173,8 @@ def load_scene(name_or_path: str | os.PathLike[str], *, seed: int = 0,
 
     Parameters
     ----------
-    name_or_path : a key of :data:`SCENARIOS`, a file in ``<shared_data>/envmaps`` (with or
+    name_or_path : a key of :data:`SCENARIOS`, ``"uniform"`` (an integrating sphere, radiance 1
+        everywhere: the flat field of the vignetting calibration), a file in ``<shared_data>/envmaps`` (with or
         without the ``.hdr``/``.exr`` suffix or ``_1k``), or a path to an equirect map.
     seed : seeds the scenario's random path, phases and switching times.
     shared_data : the shared data folder (default :func:`default_shared_data`).
@@ -181,6 +183,8 @@ def load_scene(name_or_path: str | os.PathLike[str], *, seed: int = 0,
     """
     shared = Path(shared_data) if shared_data is not None else default_shared_data()
     key = str(name_or_path)
+    if key == UNIFORM:  # an integrating sphere: radiance 1 everywhere (flat-field calibration)
+        return Scene(np.ones((32, 64, 3), np.float32), name=UNIFORM, scale=float(scale))
     if key in SCENARIOS:
         scene = _base_scene(key, shared, base)
         build = SCENARIOS[key]
@@ -195,6 +199,6 @@ def load_scene(name_or_path: str | os.PathLike[str], *, seed: int = 0,
             return Scene.from_file(c, scale=scale)
     if p.suffix.lower() in (".hdr", ".exr", ".pic"):
         raise InputError(f"{p}: no such scene file", param="scene")
-    valid = ", ".join(SCENARIOS)
+    valid = ", ".join([*SCENARIOS, UNIFORM])
     raise InputError(f"unknown scene {key!r}: use one of {valid}, a shared envmap name or an "
                      ".hdr/.exr path", param="scene")

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.model import Response
+from device.core.calibration import Response
 from drivers.base import PixelFormat
 
 __all__ = ["ResponseCurve", "SensorModel", "raw_levels"]

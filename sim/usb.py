@@ -42,7 +42,7 @@ import usb.backend
 import usb.core
 
 from drivers.base import Mode, PixelFormat
-from drivers.v4l2.fake import sim_scene
+from sim.v4l2_fake import sim_scene
 
 __all__ = ["EXTENSION_GUID", "SimUsbBackend", "SimUvcDevice", "SimUvcFrames"]
 
@@ -316,7 +316,7 @@ class SimUvcFrames:
     """Frames for ``drivers.uvc.UvcCamera`` from a :class:`SimUvcDevice`'s sensor state.
 
     ``fps`` paces frames (``asyncio.sleep``); timestamps are CLOCK_MONOTONIC at render time.
-    The picture is the ramp of ``drivers.v4l2.fake.sim_scene`` through a gamma-2.2 response.
+    The picture is the ramp of ``sim.v4l2_fake.sim_scene`` through a gamma-2.2 response.
     """
 
     def __init__(self, device: SimUvcDevice, *, width: int = 320, height: int = 240, fps: float = 120.0) -> None:

@@ -19,6 +19,15 @@ ENVMAP_NAMES = [
 ]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def table_cache_for_services() -> Path:
+    """One cache of projection tables and lens matrices for every service a test starts, in this
+    process or a subprocess (``LIGHTPROBE_TEST_CACHE``), built by the real code on first use."""
+    from service_harness import shared_cache
+
+    return shared_cache()
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from calibration.cli import main
-from calibration.model import Calibration
 from calibration.photometric import upper_irradiance
 from calibration.response import compare_inverse
 from calibration.vignetting import max_relative_error
+from device.cli.calibrate import main
+from device.core.calibration import Calibration
 from sim.camera import SimCamera
 from sim.luxmeter import SimT10A
 
@@ -43,15 +43,15 @@ def test_response_from_the_probes_own_bracket(tmp_path: Path, method: str, tol_m
 def test_raw_mode_gets_a_linearity_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                          capsys: pytest.CaptureFixture[str]) -> None:
     """A camera in a raw mode: the bracket is checked for linearity and a linear response stored."""
-    import calibration.capture as capture
+    import device.cli.bootstrap as bootstrap
     from drivers.base import Mode, PixelFormat
 
-    def raw_camera(spec: str, scene: str | None) -> SimCamera:
+    def raw_camera(spec: str, scene: str | None = None) -> SimCamera:
         cam = SimCamera("room", seed=3)
         cam._mode = Mode(640, 480, PixelFormat.RAW12, 30.0)  # as if set by the installer's config
         return cam
 
-    monkeypatch.setattr(capture, "make_camera", raw_camera)
+    monkeypatch.setattr(bootstrap, "open_cli_camera", raw_camera)
     out = tmp_path / "cal.json"
     assert main(["response", "--camera", "sim", "--exposures", "0.004", "0.008", "0.016", "0.032",
                  "--out", str(out)]) == 0

@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.cli import main as calibrate_main
 from calibration.fisheye import (
     View,
     board_object_points,
@@ -21,7 +20,8 @@ from calibration.fisheye import (
     detect_board,
     parse_board,
 )
-from calibration.model import Calibration, Photometric
+from device.cli.calibrate import main as calibrate_main
+from device.core.calibration import Calibration, Photometric
 
 ROOT = Path(__file__).resolve().parent.parent
 REAL = "fisheye_calibration/lim_8x6_27.5mm"

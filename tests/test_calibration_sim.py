@@ -10,7 +10,7 @@ import pytest
 
 from calibration.fisheye import BoardSpec, View, board_object_points, calibrate_views, detect_board
 from calibration.live import LiveFisheyeCalibration
-from calibration.model import FisheyeModel
+from device.core.calibration import FisheyeModel
 from drivers.base import Camera, Capabilities, Controls, Frame, FrameMetadata, Mode, PixelFormat
 from sim.board import BoardRenderer, random_pose, true_corners
 

@@ -7,11 +7,9 @@ import numpy as np
 import pytest
 
 from calibration.mask import fill_masked, find_mask, mask_image
-from calibration.model import Calibration, FisheyeModel, LensMask, Vignetting
 from calibration.pose import pose_from_angles, pose_from_board, rotation_angle_deg
 from calibration.response import (
     capture_bracket,
-    clean_inverse,
     compare_inverse,
     linearity_check,
     response_from_stack,
@@ -21,7 +19,8 @@ from calibration.vignetting import (
     vignetting_from_flat_field,
     vignetting_from_patches,
 )
-from device.sphere import CAMERA_TO_PROBE
+from device.core.calibration import Calibration, FisheyeModel, LensMask, Vignetting, repair_inverse
+from device.core.sphere import CAMERA_TO_PROBE
 from drivers.base import Mode, PixelFormat
 from sim.camera import SimCamera
 from sim.scene import Scene
@@ -56,22 +55,23 @@ def test_response_matches_sim_truth(rgb_bracket: tuple[list[np.ndarray], Calibra
     assert compare_inverse(resp, truth.response, 32, 230) <= tol_mid
     assert compare_inverse(resp, truth.response, 16, 240) <= tol_wide
     # A linear table is far from the truth: the comparison can fail.
-    lin = type(resp)("table", 8, clean_inverse(np.repeat(np.arange(1, 257.0)[:, None], 3, axis=1)), "x")
+    lin = type(resp)("table", 8, repair_inverse(np.repeat(np.arange(1, 257.0)[:, None], 3, axis=1)), "x")
     assert compare_inverse(lin, truth.response, 32, 230) > 0.2
 
 
-def test_clean_inverse_guards_nan_and_non_monotone() -> None:
+def test_repair_inverse_guards_nan_and_non_monotone() -> None:
     t = np.linspace(0.01, 2.0, 256)[:, None].repeat(3, axis=1)
     t[:3, 0] = np.nan  # what OpenCV 5's Robertson can return for the darkest codes
     t[100, 1] = 0.0
     t[200, 2] = 0.1
-    c = clean_inverse(t)
+    c = repair_inverse(t)
     assert np.all(np.isfinite(c))
     assert np.all(c > 0)
     assert np.all(np.diff(c, axis=0) >= 0)
-    assert c[128, 0] == pytest.approx(1.0)
+    np.testing.assert_allclose(c[3:, 0], t[3:, 0])  # finite entries are kept
+    assert np.all(c[:3, 0] == t[3, 0])  # the nearest finite value beyond the end
     with pytest.raises(ValueError, match="no finite"):
-        clean_inverse(np.full((256, 3), np.nan))
+        repair_inverse(np.full((256, 3), np.nan))
 
 
 def test_raw_linearity_check_on_sim_and_rejects_processed(rgb_bracket: tuple[list[np.ndarray], Calibration]) -> None:
@@ -205,7 +205,7 @@ def test_cli_pose_from_rendered_floor_board(tmp_path) -> None:  # type: ignore[n
 
     import cv2
 
-    from calibration.cli import main as calibrate_main
+    from device.cli.calibrate import main as calibrate_main
     from sim.board import BoardPose, BoardRenderer
 
     model = FisheyeModel((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),

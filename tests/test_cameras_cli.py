@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import os
 import subprocess
 import sys
@@ -11,9 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from device.errors import InputError
+from device.core.errors import InputError
+from drivers.base import CameraUnavailable
 from drivers.cli import main
 from drivers.discovery import (
+    NoCameraFound,
     find_v4l2_node_for_usb,
     list_cameras,
     open_camera,
@@ -21,8 +22,8 @@ from drivers.discovery import (
     probe_v4l2,
     usb_ids_of_node,
 )
-from drivers.v4l2.fake import FakeV4L2Node
 from sim.usb import SimUsbBackend, SimUvcDevice
+from sim.v4l2_fake import FakeV4L2Node
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -50,11 +51,11 @@ def test_list_here_says_no_hardware_and_offers_sim(capsys: pytest.CaptureFixture
     out = capsys.readouterr().out
     if "no camera hardware found" not in out:
         pytest.skip("this machine has camera hardware")
-    assert out.splitlines()[-1].startswith("sim ")
+    assert {line.split()[0] for line in out.splitlines()[-2:]} == {"sim", "v4l2-fake"}  # plugins last
     assert main(["--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["hardware_found"] is False
-    assert doc["cameras"][-1]["spec"] == "sim"
+    assert {c["spec"] for c in doc["cameras"]} == {"sim", "v4l2-fake"}
 
 
 def test_check_missing_device_exits_2_with_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -94,12 +95,25 @@ def test_entry_point_exit_code_and_help() -> None:
     assert "--json" in h.stdout
 
 
-def test_auto_falls_back_to_simulator(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO, logger="drivers.discovery"):
-        cam = open_camera("auto", by_id_dir=str(tmp_path))
-    if type(cam).__name__ != "SimCamera":
+def test_auto_never_picks_the_simulator(tmp_path: Path) -> None:
+    """No hardware: ``auto`` raises NoCameraFound (a CameraUnavailable) naming what it looked
+    at, never a simulated camera; plugins are listed but not picked."""
+    if list_cameras(by_id_dir=str(tmp_path), include_plugins=False):
         pytest.skip("this machine has camera hardware")
-    assert "using the simulator" in caplog.text
+    with pytest.raises(NoCameraFound, match="no camera hardware found") as e:
+        open_camera("auto", by_id_dir=str(tmp_path))
+    assert isinstance(e.value, CameraUnavailable)
+    kinds = {c.kind for c in list_cameras(by_id_dir=str(tmp_path))}
+    assert {"sim", "v4l2-fake"} <= kinds  # the simulator's plugins, listed as such
+
+
+def test_cameras_check_auto_without_hardware_exits_2(tmp_path: Path) -> None:
+    if list_cameras(include_plugins=False):
+        pytest.skip("this machine has camera hardware")
+    r = subprocess.run([sys.executable, "-m", "device.cli", "cameras", "--check", "auto"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=60, check=False)  # fmt: skip
+    assert r.returncode == 2
+    assert "no camera hardware found" in r.stderr
 
 
 def test_probe_fake_node_and_list_uvc_devices() -> None:
@@ -123,7 +137,7 @@ def test_probe_fake_node_and_list_uvc_devices() -> None:
     assert uvc[0].status == "available"
     assert uvc[0].capabilities["exposure_range_s"] == [0.0001, 0.5]
     assert "uvcvideo" in uvc[1].status
-    assert cams[-1].kind == "sim"
+    assert {c.kind for c in cams[-2:]} == {"sim", "v4l2-fake"}  # the plugins come last
 
 
 def _fake_sysfs(tmp_path: Path) -> tuple[Path, Path]:

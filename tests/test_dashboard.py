@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Any
 
 import aiohttp
 import pytest
-from service_fakes import running_service, service_config
+from service_harness import running_service, service_config, sim_factories
 
 pytestmark = pytest.mark.browser
 
@@ -18,27 +17,17 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--d
         "--disable-sync", "--no-first-run"]
 
 
-def make_factories(kind: str, tmp_path: Path) -> tuple[Any, Any]:
-    """``sim``: the real pipeline on the simulated probe; ``standin``: the fast test stand-in."""
-    if kind == "standin":
-        from service_fakes import fake_factories
-
-        return fake_factories()
-    pytest.importorskip("device.pipeline")
-    from device.service.cli import camera_factory, pipeline_factory
-
-    return camera_factory("sim", "flashlight"), pipeline_factory(tmp_path / "state", "dashprobe001")
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium not installed (apt-get install chromium)")
-@pytest.mark.parametrize("kind", ["standin", pytest.param("sim", marks=[pytest.mark.slow, pytest.mark.timeout(600)])])
-async def test_dashboard_live_view_lights_status_and_rename(kind: str, tmp_path: Path, artifacts_dir: Path) -> None:
+@pytest.mark.timeout(600)
+async def test_dashboard_live_view_lights_status_and_rename(tmp_path: Path, artifacts_dir: Path) -> None:
     from playwright.async_api import async_playwright
 
     assert shutil.which("chromium") or CHROMIUM
     cfg = service_config(tmp_path, probe={"name": "Lobby probe"}, pipeline={"fps": 5.0, "light_count": 64})
-    make_camera, make_pipeline = make_factories(kind, tmp_path)
-    first_frame_s = 10.0 if kind == "standin" else 300.0
+    make_camera, make_pipeline = sim_factories(tmp_path, "dashprobe001")
+    first_frame_s = 300.0
     async with running_service(cfg, make_camera, make_pipeline) as s, async_playwright() as p:
         browser = await p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         try:
@@ -77,8 +66,7 @@ async def test_dashboard_live_view_lights_status_and_rename(kind: str, tmp_path:
             async with aiohttp.ClientSession() as c, c.get(s.api + "/config") as r:
                 assert (await r.json())["config"]["probe"]["name"] == "Atrium east"
             await page.wait_for_timeout(1200)  # one more frame + status poll for the screenshot
-            name = "dashboard.png" if kind == "sim" else "dashboard_standin.png"
-            await page.screenshot(path=str(artifacts_dir / name), full_page=True)
+            await page.screenshot(path=str(artifacts_dir / "dashboard.png"), full_page=True)
             assert not errors, errors
         finally:
             await browser.close()

@@ -3,7 +3,7 @@
 Backends: the simulator (sim.camera.SimCamera); UVC controls through the REAL pyusb code path on
 a simulated USB device (sim.usb) composed with simulated frames (drivers.uvc.UvcCamera: frames do
 not travel over UVC control requests, see drivers/uvc.py); the V4L2 camera on the fake ioctl
-endpoint (drivers.v4l2.fake) in both the LP64 and the 32-bit ARM struct layouts; libcamera through
+endpoint (sim.v4l2_fake) in both the LP64 and the 32-bit ARM struct layouts; libcamera through
 a fake picamera2 (tests/fake_picamera2.py); and real hardware when LIGHTPROBE_HIL_CAMERA names a
 ``--camera`` spec (e.g. ``v4l2:/dev/v4l/by-id/usb-...-video-index0``, ``libcamera``), marked
 ``hardware`` and skipped otherwise.
@@ -34,8 +34,8 @@ from drivers.libcamera import Picamera2Camera
 from drivers.uvc import UvcCamera, find_uvc_devices
 from drivers.v4l2._structs import ABI32, ABI64
 from drivers.v4l2.camera import V4L2Camera
-from drivers.v4l2.fake import FakeV4L2Node
 from sim.usb import SimUsbBackend, SimUvcDevice, SimUvcFrames
+from sim.v4l2_fake import FakeV4L2Node
 
 HIL = os.environ.get("LIGHTPROBE_HIL_CAMERA", "")
 

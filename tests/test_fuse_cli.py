@@ -12,8 +12,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from calibration.model import Calibration, Response
 from device.cli import main
+from device.core.calibration import Calibration, Response
 from device.hdr import FusionSettings
 from device.hdr.cli import estimate_response
 

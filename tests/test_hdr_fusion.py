@@ -7,9 +7,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from calibration.model import Response
-from device.errors import InputError
-from device.hdr import FusionSettings, build_luts, fuse, fuse_frames, fuse_raw, sanitize_inverse
+from device.core.calibration import Response, repair_inverse
+from device.core.errors import InputError
+from device.hdr import FusionSettings, build_luts, fuse, fuse_frames, fuse_raw
 from drivers.base import Frame, FrameMetadata, PixelFormat
 
 GAMMA = 2.2
@@ -172,12 +172,12 @@ def test_nan_and_inf_from_float_drivers_are_invalid_samples() -> None:
     assert not res.saturated[9, 9]
 
 
-def test_sanitize_inverse_repairs_nan_from_robertson() -> None:
+def test_repair_inverse_repairs_nan_from_robertson() -> None:
     inv = gamma_response().inverse.copy()
     inv[:3] = np.nan
     inv[100, 1] = np.inf
     inv[50, 2] = inv[40, 2] * 0.5
-    out = sanitize_inverse(inv)
+    out = repair_inverse(inv)
     assert np.isfinite(out).all()
     assert np.all(np.diff(out, axis=0) >= 0)
     np.testing.assert_allclose(out[200], inv[200])

@@ -1,12 +1,12 @@
-"""Debevec-Malik response recovery (device.hdr.response)."""
+"""Debevec-Malik response recovery (calibration.response, the one solver)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from device.errors import InputError
-from device.hdr.response import sample_pixels, solve_debevec
+from calibration.response import sample_pixels, solve_debevec
+from device.core.errors import InputError
 
 
 def _stack(gamma: tuple[float, float, float], seed: int = 0) -> tuple[list[np.ndarray], list[float]]:

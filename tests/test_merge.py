@@ -12,7 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.sampling.base import LightSet
+from device.core.lightset import LightSet
+from device.core.q2wire import Q2Tree, decode_q2tree, encode_q2tree
 from device.sampling.q2tree import Q2TreeSampler
 from device.sampling.q2tree._nodes import pyramid_from_equirect
 from hostlink.merge import (
@@ -24,7 +25,6 @@ from hostlink.merge import (
     merge_tree_nodes,
     probe_weights,
 )
-from hostlink.q2encode import Q2Tree, decode_q2tree, encode_q2tree
 
 LEVEL = 5  # complete trees at nside 32: 12288 leaves
 MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "lebombo_1k.hdr"]
@@ -45,7 +45,7 @@ def complete_tree(img: np.ndarray, level: int = LEVEL) -> Q2Tree:
 
 @pytest.fixture(scope="module")
 def maps(envmap_paths: dict[str, Path]) -> list[np.ndarray]:
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     return [_small(read_hdr_image(envmap_paths[n])) for n in MAPS]
 

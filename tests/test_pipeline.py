@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.errors import InputError
+from device.core.errors import InputError
+from device.core.sphere import angles_from_directions, equirect_integral
 from device.pipeline import Pipeline, PipelineConfig, tone_map
-from device.sphere import angles_from_directions, equirect_integral
 from sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow
@@ -47,7 +47,7 @@ async def test_static_scene_publishes_conserved_lights_then_skips_resampling():
 
 async def test_flashlight_power_follows_the_flashlight():
     """The lights' power in a cone around the flashlight matches the true map's power there."""
-    from device.sphere import equirect_directions, equirect_solid_angle, luminance
+    from device.core.sphere import equirect_directions, equirect_solid_angle, luminance
 
     cam = SimCamera("flashlight", seed=2)
     pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(sampler="pharr", light_count=256))

@@ -13,9 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from calibration.model import Calibration, FisheyeModel, Photometric, Vignetting
-from device.errors import InputError
-from device.healpix import npix, pix2vec_nest, vec2pix_nest
+from device.core.calibration import Calibration, FisheyeModel, Photometric, Vignetting
+from device.core.errors import InputError
+from device.core.healpix import npix, pix2vec_nest, vec2pix_nest
+from device.core.sphere import CAMERA_TO_PROBE, directions_from_angles
 from device.projection import (
     Projector,
     fisheye_pixel_directions,
@@ -23,7 +24,6 @@ from device.projection import (
     fisheye_valid_mask,
     spherical_triangle_solid_angle,
 )
-from device.sphere import CAMERA_TO_PROBE, directions_from_angles
 
 W, H = 320, 240
 F = 76.0

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.healpix import equirect_to_healpix, npix, pix2vec_nest
+from device.core.healpix import equirect_to_healpix, npix, pix2vec_nest
+from device.core.sphere import equirect_row_solid_angle
 from device.projection import Projector
-from device.sphere import equirect_row_solid_angle
 from sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow

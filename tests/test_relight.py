@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.sphere import equirect_integral
+from device.core.sphere import equirect_integral
 from hostlink.relight import cuts as C
 from hostlink.relight.directions import (
     LEAF_SOLID_ANGLE,
@@ -207,8 +207,8 @@ def test_trilinear_interpolation_of_8_cuts_equals_dense(seed: int) -> None:
 
 
 def test_leaf_light_conserves_energy_and_prefix_sums(envmap_paths: dict[str, Path]) -> None:
-    from device.imageio import read_hdr_image
-    from device.sampling.base import LightSet
+    from device.core.imageio import read_hdr_image
+    from device.core.lightset import LightSet
     from hostlink.relight.lighting import (
         leaf_light_from_equirect,
         leaf_light_from_lightset,

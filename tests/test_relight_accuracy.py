@@ -23,7 +23,7 @@ MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr
 
 @pytest.fixture(scope="module")
 def spot_setup(shared_data: Path, envmap_paths: dict[str, Path], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
     from hostlink.relight.lighting import leaf_light_from_equirect
     from hostlink.relight.precompute import DEFAULT_TAU, precompute
     from hostlink.relight.reference import reference_radiance
@@ -48,7 +48,7 @@ def spot_setup(shared_data: Path, envmap_paths: dict[str, Path], tmp_path_factor
 
 
 def _rel_rms(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray, ref: np.ndarray) -> float:  # type: ignore[no-untyped-def]
-    from device.sphere import luminance
+    from device.core.sphere import luminance
 
     rl.set_leaf_light(leaf)
     b, _ = rl.vertex_radiance(eye, vidx)

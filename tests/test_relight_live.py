@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 from aiohttp import web
-from service_fakes import RunningService, free_port, service_config
+from service_harness import RunningService, free_port, service_config
 
 pytestmark = pytest.mark.slow
 pytest.importorskip("device.pipeline")
@@ -42,8 +42,8 @@ f 2 3 7 6
 
 @contextlib.asynccontextmanager
 async def sim_probe(tmp_path: Path) -> AsyncIterator[RunningService]:
+    from device.cli.bootstrap import camera_factory, pipeline_factory
     from device.service.app import create_app
-    from device.service.cli import camera_factory, pipeline_factory
 
     pid = "relightprobe1"
     cfg = service_config(tmp_path, probe={"name": "relight", "id": pid},
@@ -64,7 +64,7 @@ async def sim_probe(tmp_path: Path) -> AsyncIterator[RunningService]:
 
 @pytest.mark.timeout(300)
 async def test_live_rerenders_when_the_real_probe_lights_change(tmp_path: Path) -> None:
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
     from hostlink.relight.live import run_live
     from hostlink.relight.precompute import precompute
     from hostlink.relight.render import Relighter

@@ -16,7 +16,7 @@ import json
 import numpy as np
 import pytest
 
-from device.sphere import luminance
+from device.core.sphere import luminance
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.errors import InputError
+from device.core.errors import InputError
 from hostlink.relight.scene import load_obj, load_scene
 
 CUBE = """# unit cube
@@ -87,7 +87,7 @@ def test_scene_errors_exit_2_naming_the_line(tmp_path: Path, capsys: pytest.Capt
     from hostlink.relight.cli import main
 
     lights = tmp_path / "sky.exr"
-    from device.imageio import write_exr
+    from device.core.imageio import write_exr
 
     write_exr(lights, sky())
     out = tmp_path / "o.png"
@@ -182,9 +182,8 @@ def test_all_black_lights_give_black_vertices(tiny: tuple) -> None:
 
 
 def test_raster_bary_and_render_outputs(tiny: tuple, tmp_path: Path) -> None:
-    from device.imageio import read_hdr_image
-    from hostlink.relight.cli import write_image
-    from hostlink.relight.render import Relighter, rasterize
+    from device.core.imageio import read_hdr_image
+    from hostlink.relight.render import Relighter, rasterize, write_image
 
     scene, pre, _ = tiny
     r = rasterize(scene.camera, pre.vertices, pre.faces)
@@ -281,7 +280,7 @@ def test_cli_lightset_json_url_and_live(tmp_path: Path, probe_server: str) -> No
     lj.write_text(json.dumps(_lightset_doc(1, 5.0)))
     cache = tmp_path / "cache"
     assert main([str(p), "--lights", str(lj), "--out", str(tmp_path / "a.exr"), "--cache", str(cache), "--quiet"]) == 0
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     a = read_hdr_image(tmp_path / "a.exr")
     assert a.max() > 0
@@ -334,7 +333,7 @@ def test_render_cache_matches_fresh_render(tiny: tuple) -> None:
 
 
 def test_cli_move_and_rotate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from device.imageio import read_hdr_image, write_exr
+    from device.core.imageio import read_hdr_image, write_exr
     from hostlink.relight.cli import main
 
     p = write_scene(tmp_path)

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.imageio import read_hdr_image, write_exr
-from device.sampling.base import LightSet
+from device.core.imageio import read_hdr_image, write_exr
+from device.core.lightset import LightSet
+from device.core.sphere import equirect_integral
 from device.sampling.metrics import lights_total
-from device.sphere import equirect_integral
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.sampling.base import LightSet
+from device.core.lightset import LightSet
+from device.core.sphere import equirect_row_solid_angle
 from device.sampling.metrics import (
     ErrorReference,
     diffuse_irradiance_error,
@@ -14,7 +15,6 @@ from device.sampling.metrics import (
     occluded_irradiance_error,
     relative_rmse,
 )
-from device.sphere import equirect_row_solid_angle
 
 
 def _pixel_light(img: np.ndarray, r: int, c: int) -> LightSet:

@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.errors import InputError
-from device.imageio import read_hdr_image
-from device.sampling.metrics import ErrorReference
-from device.sampling.peaks import choose_light_count, coarse_equirect, find_peaks
-from device.sampling.q2tree import Q2TreeSampler
-from device.sphere import (
+from device.core.errors import InputError
+from device.core.imageio import read_hdr_image
+from device.core.sphere import (
     directions_from_angles,
     equirect_integral,
     equirect_row_solid_angle,
     luminance,
 )
+from device.sampling.metrics import ErrorReference
+from device.sampling.peaks import choose_light_count, coarse_equirect, find_peaks
+from device.sampling.q2tree import Q2TreeSampler
 from sim.scene import rasterize_disc
 
 H = 256
@@ -101,26 +101,31 @@ def test_studio_lamps(envmap_paths: dict[str, Path]) -> None:
         assert lum[r, c] > 0.01 * lum.max()  # the centroid lies on the lamp
 
 
+def _q2(img: np.ndarray):  # type: ignore[no-untyped-def]
+    q2 = Q2TreeSampler(hysteresis=0.0)  # zero hysteresis: each count equals a fresh build
+    return lambda c: q2.sample(img, c)
+
+
 def test_choose_light_count_uses_fewer_lights_when_peaks_dominate() -> None:
     img, _, _ = _disc_map(background=0.02, discs=[(60.0, 100.0, 3.0, 2000.0)])
-    count, peaks = choose_light_count(img, 256, 0.01)
+    count, peaks = choose_light_count(img, 256, 0.01, sample=_q2(img))
     assert len(peaks) == 1
     assert peaks[0].energy_fraction > 0.8
     assert count < 256
     exact = ErrorReference(img).error("diffuse", Q2TreeSampler().sample(img, count))
     assert exact <= 0.015  # the target, judged on a 64 x 128 reduction of the map
     # a tighter target needs more lights
-    more, _ = choose_light_count(img, 256, 1e-4)
+    more, _ = choose_light_count(img, 256, 1e-4, sample=_q2(img))
     assert more > count
 
 
 def test_choose_light_count_keeps_max_without_peaks() -> None:
     smooth = np.ones((128, 256, 3), np.float32)
     smooth *= (1.0 + np.linspace(0, 1, 128, dtype=np.float32))[:, None, None]
-    assert choose_light_count(smooth, 200, 0.5)[0] == 200
-    assert choose_light_count(np.zeros((64, 128, 3), np.float32), 50, 0.1) == (50, [])
+    assert choose_light_count(smooth, 200, 0.5, sample=_q2(smooth))[0] == 200
+    assert choose_light_count(np.zeros((64, 128, 3), np.float32), 50, 0.1, sample=_q2(smooth)) == (50, [])
     with pytest.raises(InputError):
-        choose_light_count(smooth, 0, 0.1)
+        choose_light_count(smooth, 0, 0.1, sample=_q2(smooth))
 
 
 def test_q2tree_publishes_peaks_and_uses_error_target() -> None:

@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.errors import InputError
-from device.healpix import equirect_to_healpix, vec2pix_nest
-from device.imageio import read_hdr_image
-from device.sampling.base import LightSet
+from device.core.errors import InputError
+from device.core.healpix import equirect_to_healpix, vec2pix_nest
+from device.core.imageio import read_hdr_image
+from device.core.lightset import LightSet
+from device.core.sphere import equirect_integral, equirect_solid_angle
 from device.sampling.q2tree import Q2TreeSampler, auto_nside, nodes_to_uniq, uniq_to_nodes
 from device.sampling.registry import make_sampler
-from device.sphere import equirect_integral, equirect_solid_angle
 
 NSIDE = 16
 
@@ -98,9 +98,15 @@ def test_count_changes_between_frames_are_incremental() -> None:
     rng = np.random.default_rng(11)
     m = _random_map(rng)
     s = Q2TreeSampler(hysteresis=0.0)
-    for count in (300, 100, 13, 1000, 12, 5, 400):
+    prev = 0
+    for i, count in enumerate((300, 100, 13, 1000, 12, 5, 400)):
         ls = s.sample_healpix(m, NSIDE, count)
         assert len(ls) == count
+        # after the first frame the tree is split and merged from the last one, never built afresh
+        assert s.stats["mode"] == ("full" if i == 0 else "incremental")
+        if i:  # the split-merge bookkeeping: 3 leaves per split, 3 fewer per merge
+            assert s.stats["splits"] - s.stats["merges"] == (s.stats["leaves"] - prev) // 3
+        prev = s.stats["leaves"]
         want = Q2TreeSampler().sample_healpix(m, NSIDE, count)
         _assert_same_lights(ls, want)
 

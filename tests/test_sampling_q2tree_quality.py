@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.imageio import read_hdr_image
+from device.core.imageio import read_hdr_image
 from device.sampling.metrics import ErrorReference
 from device.sampling.q2tree import Q2TreeSampler
 from device.sampling.registry import available_samplers, make_sampler

@@ -7,19 +7,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.imageio import read_hdr_image
-from device.sampling.base import LightSet, sanitize_radiance
-from device.sampling.havran import hemisphere_to_square
-from device.sampling.hemigon import LOWER_ID_OFFSET, HemigonSampler, split_count
-from device.sampling.metrics import ErrorReference, lights_total
-from device.sampling.pharr import PharrSampler
-from device.sampling.registry import available_samplers, make_sampler
-from device.sphere import (
+from device.core.imageio import read_hdr_image
+from device.core.lightset import LightSet
+from device.core.sphere import (
     angles_from_directions,
     equirect_integral,
     equirect_row_solid_angle,
     luminance,
 )
+from device.sampling.base import sanitize_radiance
+from device.sampling.havran import hemisphere_to_square
+from device.sampling.hemigon import LOWER_ID_OFFSET, HemigonSampler, split_count
+from device.sampling.metrics import ErrorReference, lights_total
+from device.sampling.pharr import PharrSampler
+from device.sampling.registry import available_samplers, make_sampler
 
 METHODS = ["pharr", "hemigon", "median-cut"]
 

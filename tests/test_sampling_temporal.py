@@ -34,7 +34,7 @@ def test_flashlight_errors_stay_bounded(flashlight: dict[str, dict[str, float]])
 
 
 def _spot_map(phi_deg: float) -> np.ndarray:
-    from device.sphere import directions_from_angles, equirect_directions
+    from device.core.sphere import directions_from_angles, equirect_directions
 
     d = equirect_directions(64)
     img = np.full((64, 128, 3), 0.01, np.float32)
@@ -46,7 +46,7 @@ def _spot_map(phi_deg: float) -> np.ndarray:
 def test_trajectory_filter_reset_prevents_ghost_lights() -> None:
     """A lamp jumps 120 deg between frames: with the reset, lights are at the new lamp at once;
     without it, filtered lights sweep across the sky (ghosts) between old and new place."""
-    from device.sphere import directions_from_angles
+    from device.core.sphere import directions_from_angles
 
     new = directions_from_angles(np.radians(60.0), np.radians(150.0))
     power_near_new = {}

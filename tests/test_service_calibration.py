@@ -6,10 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from calibration.model import Photometric
-from calibration.store import CalibrationStore
-from device.errors import InputError
-from device.service.cli import load_calibration
+from calibration.store import CalibrationStore, load_calibration
+from device.core.calibration import Photometric
+from device.core.errors import InputError
 from sim.camera import SimCamera
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import aiohttp
 import pytest
-from service_fakes import running_service, service_config
+from service_harness import running_service, service_config
 from test_service_calibration_live import fast_schedule, fresh_lights_on, sim_factories, wait_for
 
 from calibration.store import CalibrationStore

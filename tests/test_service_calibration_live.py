@@ -12,11 +12,11 @@ from typing import Any
 
 import aiohttp
 import pytest
-from service_fakes import running_service, service_config
+from service_harness import running_service, service_config
 
 from calibration.store import CalibrationStore
-from device.errors import InputError
-from device.service.calibration_api import image_circle, parse_start
+from device.core.errors import InputError
+from device.service.routes.calibration import image_circle, parse_start
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -31,7 +31,7 @@ def fast_schedule() -> Any:
 
 
 def sim_factories(tmp_path: Path) -> tuple[Any, Any]:
-    from device.service.cli import camera_factory, pipeline_factory
+    from device.cli.bootstrap import camera_factory, pipeline_factory
 
     return camera_factory("sim", "flashlight"), pipeline_factory(tmp_path / "state", "calprobe0001")
 

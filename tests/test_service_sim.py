@@ -21,7 +21,7 @@ from typing import Any
 import aiohttp
 import numpy as np
 import pytest
-from service_fakes import running_service, service_config
+from service_harness import running_service, service_config
 
 pytestmark = pytest.mark.slow
 
@@ -45,8 +45,8 @@ async def _next_lights(ws: aiohttp.ClientWebSocketResponse, within: float) -> di
 def table_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A state cache with the projection tables (service defaults) and the simulator's lens
     matrices for the scenes used here, built by the real code, once per session."""
+    from device.cli.bootstrap import PipelineFactory
     from device.projection import Projector
-    from device.service.cli import PipelineFactory
     from device.service.config import ServiceConfig
     from sim._lenscache import load_render_matrix
     from sim.camera import SimCamera
@@ -70,7 +70,7 @@ def _state_with_cache(tmp_path: Path, cache: Path) -> Path:
 
 @pytest.mark.timeout(300)
 async def test_real_pipeline_stream_flashlight_and_disconnect(tmp_path: Path, table_cache: Path) -> None:
-    from device.service.cli import camera_factory, pipeline_factory
+    from device.cli.bootstrap import camera_factory, pipeline_factory
 
     state = _state_with_cache(tmp_path, table_cache)
     cfg = service_config(tmp_path, pipeline={"fps": 30.0, "light_count": 64, "sampler": "q2tree"})

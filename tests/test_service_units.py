@@ -111,14 +111,14 @@ def test_schema_defaults_are_valid() -> None:
     assert ServiceConfig().with_patch(defaults).data == ServiceConfig().data
 
 
-def test_every_api_route_is_documented() -> None:
+def test_every_api_route_is_documented(tmp_path: Path) -> None:
     import json
 
-    from service_fakes import fake_factories
+    from service_harness import sim_factories
 
     from device.service.app import create_app
 
-    app = create_app(ServiceConfig(), *fake_factories(), token="t", probe_id="p")
+    app = create_app(ServiceConfig(), *sim_factories(tmp_path), token="t", probe_id="p")
     doc = json.loads((Path(__file__).resolve().parent.parent / "device/service/static/openapi.json").read_text())
     routes = {r.canonical.removeprefix("/api/v1") for r in app.router.resources() if r.canonical.startswith("/api/v1/")}
     assert routes == set(doc["paths"]), routes ^ set(doc["paths"])
@@ -134,7 +134,7 @@ def test_mdns_interfaces_follow_the_listen_address() -> None:
 
 
 def test_numba_cache_goes_to_the_state_dir_only_when_the_package_is_read_only(tmp_path: Path) -> None:
-    from device.service.cli import numba_cache_dir
+    from device.cli.serve import numba_cache_dir
 
     state = tmp_path / "state"
     read_only = tmp_path / "missing-package"  # os.access(..., W_OK) is False (root ignores modes)
@@ -146,7 +146,7 @@ def test_numba_cache_goes_to_the_state_dir_only_when_the_package_is_read_only(tm
 
 
 def test_one_blas_thread_unless_set() -> None:
-    from device.service.cli import single_blas_thread
+    from device.cli.serve import single_blas_thread
 
     env: dict[str, str] = {}
     single_blas_thread(env)

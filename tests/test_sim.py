@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.model import Calibration
-from device.errors import InputError
-from device.sphere import CAMERA_TO_PROBE, directions_from_angles
+from device.core.calibration import Calibration
+from device.core.errors import InputError
+from device.core.sphere import CAMERA_TO_PROBE, directions_from_angles
 from drivers.base import (
     Camera,
     CameraDisconnected,

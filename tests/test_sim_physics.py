@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.sphere import directions_from_angles, equirect_integral, equirect_row_solid_angle
+from device.core.sphere import directions_from_angles, equirect_integral, equirect_row_solid_angle
 from drivers.base import PixelFormat
 from sim.lens import standard_lens
 from sim.scene import DynamicLight, Scene, disc_energy, rasterize_disc
@@ -74,7 +74,7 @@ def test_render_of_uniform_map_is_uniform_inside_the_circle(vga_lens) -> None:  
 
 @pytest.mark.parametrize("name", ["lebombo_1k.hdr", "studio_small_03_1k.hdr", "rooitou_park_1k.hdr"])
 def test_render_is_area_correct_over_the_visible_cap(vga_lens, name: str, envmap_paths: dict[str, Path]) -> None:  # type: ignore[no-untyped-def]
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     eq = read_hdr_image(envmap_paths[name])
     eq[eq.shape[0] // 2 :] = 0  # keep the upper hemisphere (the lens sees 185 deg)
@@ -85,7 +85,7 @@ def test_render_is_area_correct_over_the_visible_cap(vga_lens, name: str, envmap
 
 
 def test_render_is_area_correct_in_the_large_mode(envmap_paths: dict[str, Path]) -> None:
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     lens = standard_lens(1280, 960)
     eq = read_hdr_image(envmap_paths["interior_blender.exr"])  # tiny 3e4 lamps: a hard case

@@ -26,8 +26,8 @@ from drivers.uvc import (
     v4l2_controls_with_uvc_fallback,
 )
 from drivers.v4l2.camera import V4L2Camera
-from drivers.v4l2.fake import FakeV4L2Node
 from sim.usb import EXTENSION_GUID, SimUsbBackend, SimUvcDevice, SimUvcFrames, _vc_descriptors
+from sim.v4l2_fake import FakeV4L2Node
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""V4L2Camera against the fake ioctl endpoint (drivers.v4l2.fake), and the real transport's errors.
+"""V4L2Camera against the fake ioctl endpoint (sim.v4l2_fake), and the real transport's errors.
 
 The fake decodes ioctl numbers and struct bytes with its own kernel offset tables and records
 every call, so these tests check call order, the bytes we send, streaming, drops, the settling
@@ -27,7 +27,7 @@ from drivers.discovery import open_with_retry
 from drivers.v4l2._ioctl import DeviceTransport, IoctlError
 from drivers.v4l2._structs import ABI32, ABI64, V4L2Abi
 from drivers.v4l2.camera import V4L2Camera
-from drivers.v4l2.fake import (
+from sim.v4l2_fake import (
     CID_EXPOSURE_ABSOLUTE,
     CID_EXPOSURE_AUTO,
     CID_EXPOSURE_AUTO_PRIORITY,

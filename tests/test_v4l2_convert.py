@@ -8,7 +8,7 @@ import pytest
 
 from drivers.v4l2 import _structs as S
 from drivers.v4l2.convert import CorruptFrame, bayer_to_rgb, buffer_to_rgb, mosaic
-from drivers.v4l2.fake import rgb_to_yuyv
+from sim.v4l2_fake import rgb_to_yuyv
 
 RNG = np.random.default_rng(1234)
 

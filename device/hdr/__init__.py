@@ -14,7 +14,6 @@ from .fusion import (
     fuse_frames,
     fuse_raw,
     fuse_tables,
-    sanitize_inverse,
 )
 
 __all__ = [
@@ -26,5 +25,4 @@ __all__ = [
     "fuse_frames",
     "fuse_raw",
     "fuse_tables",
-    "sanitize_inverse",
 ]

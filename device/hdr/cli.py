@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.model import Calibration, Response
-from device.errors import InputError
+from device.core.calibration import Calibration, Response
+from device.core.errors import InputError
 
 __all__ = ["estimate_response", "main", "read_stack", "read_times_file"]
 
@@ -38,8 +38,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="OUT.exr", help="output OpenEXR file")
     p.add_argument("--no-deghost", action="store_true",
                    help="keep samples that disagree with the reference exposure (static scenes)")
-    p.add_argument("--smoothness", type=float, default=10.0,
-                   help="Debevec-Malik smoothness lambda when estimating the response (default 10)")
+    p.add_argument("--smoothness", type=float, default=None,
+                   help="Debevec-Malik smoothness lambda per sample when estimating the response "
+                        "(default: calibration.response.SMOOTHNESS)")
     return p
 
 
@@ -100,11 +101,11 @@ def read_stack(images: list[Path]) -> list[np.ndarray]:
     return out
 
 
-def estimate_response(frames: list[np.ndarray], times: list[float], smoothness: float = 10.0) -> Response:
-    """Debevec-Malik response of the stack itself (:func:`device.hdr.response.solve_debevec`)."""
-    from device.hdr.response import solve_debevec
+def estimate_response(frames: list[np.ndarray], times: list[float], smoothness: float | None = None) -> Response:
+    """Debevec-Malik response of the stack itself (:func:`calibration.response.solve_debevec`)."""
+    from calibration.response import SMOOTHNESS, solve_debevec
 
-    return solve_debevec(frames, times, smoothness=smoothness)
+    return solve_debevec(frames, times, smoothness=SMOOTHNESS if smoothness is None else smoothness)
 
 
 def _load_response(path: Path) -> Response:
@@ -129,8 +130,8 @@ def _load_response(path: Path) -> Response:
 
 
 def _run(ns: argparse.Namespace) -> int:
+    from device.core.imageio import write_exr
     from device.hdr.fusion import FusionSettings, fuse
-    from device.imageio import write_exr
 
     images = [Path(p) for p in ns.images]
     if ns.times is not None and ns.times_file is not None:
@@ -173,7 +174,7 @@ def _run(ns: argparse.Namespace) -> int:
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.core.command import run_command
 
     ns = _parser().parse_args(argv)
     return run_command(_run, ns)

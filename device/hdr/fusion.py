@@ -2,7 +2,7 @@
 
 Every frame ``i`` of a stack gives, per pixel and channel, an estimate of the scene radiance
 ``X_i = E(z_i) / (t_i g_i)`` (Debevec & Malik 1997, eq. 6) where ``E`` is the inverse camera
-response (``calibration.model.Response.inverse``: pixel value -> relative linear exposure; for RAW
+response (``device.core.calibration.Response.inverse``: pixel value -> relative linear exposure; for RAW
 frames ``E(z) = (z - black) / (white - black)``), ``t_i`` the exposure time and ``g_i`` the gain.
 The fused value is the weighted mean ``X = sum_i w_i X_i / sum_i w_i`` with
 
@@ -56,8 +56,8 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from calibration.model import Response
-from device.errors import InputError
+from device.core.calibration import Response, repair_inverse
+from device.core.errors import InputError
 
 if TYPE_CHECKING:
     from drivers.base import Frame
@@ -72,7 +72,6 @@ __all__ = [
     "fuse_raw",
     "fuse_tables",
     "packed_lut",
-    "sanitize_inverse",
 ]
 
 
@@ -124,44 +123,17 @@ class FusionResult:
 
 
 # ---- Look-up tables -----------------------------------------------------------------------------
-def sanitize_inverse(inverse: np.ndarray) -> np.ndarray:
-    """A finite, non-decreasing, non-negative copy of an inverse response table (L, 3) float64.
-
-    OpenCV 5's ``CalibrateRobertson`` (and Debevec on sparse stacks) can return NaN/Inf or 0 for
-    the lowest levels: non-finite entries are replaced by the nearest finite entry above them,
-    then a running maximum makes the table monotone. A channel with no finite entry becomes linear.
-    """
-    inv = np.array(inverse, dtype=np.float64, copy=True)
-    if inv.ndim == 1:
-        inv = np.repeat(inv[:, None], 3, axis=1)
-    if inv.ndim != 2 or inv.shape[1] != 3 or inv.shape[0] < 2:
-        raise InputError(f"response table must be (levels, 3), got {inv.shape}", param="response")
-    levels = inv.shape[0]
-    for c in range(3):
-        col = inv[:, c]
-        ok = np.isfinite(col)
-        if not ok.any():
-            inv[:, c] = np.arange(levels, dtype=np.float64) / (levels - 1)
-            continue
-        idx = np.where(ok, np.arange(levels), levels)  # Fill from the next finite entry above
-        nxt = np.minimum.accumulate(idx[::-1])[::-1]
-        last_ok = np.flatnonzero(ok)[-1]
-        nxt = np.where(nxt >= levels, last_ok, nxt)
-        col = col[nxt]
-        inv[:, c] = np.maximum.accumulate(np.clip(col, 0.0, None))
-    return inv
-
-
 _SANITIZED: dict[tuple[object, ...], np.ndarray] = {}
 
 
 def _sanitized(inverse: np.ndarray) -> np.ndarray:
-    """:func:`sanitize_inverse`, memoised on the table's bytes (one entry per response)."""
+    """:func:`device.core.calibration.repair_inverse`, memoised on the table's bytes (one entry
+    per response)."""
     inv = np.ascontiguousarray(inverse, dtype=np.float64)
     key = (hash(inv.tobytes()), inv.shape)
     hit = _SANITIZED.get(key)
     if hit is None:
-        hit = sanitize_inverse(inv)
+        hit = repair_inverse(inv)
         hit.setflags(write=False)
         with _CACHE_LOCK:
             if len(_SANITIZED) >= 8:

@@ -12,9 +12,9 @@ from typing import Literal
 
 import numpy as np
 
-from calibration.model import Calibration
-from device.errors import InputError
-from device.healpix import npix
+from device.core.calibration import Calibration
+from device.core.errors import InputError
+from device.core.healpix import npix
 
 from .kernels import _spmv_rgb, _spmv_rgb_fix
 from .tables import _TABLE_CACHE, _TABLE_CACHE_SIZE, _build_all

@@ -18,8 +18,8 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.model import Calibration, FisheyeModel
-from device.sphere import CAMERA_TO_PROBE
+from device.core.calibration import Calibration, FisheyeModel
+from device.core.sphere import CAMERA_TO_PROBE
 
 from .geometry import (
     _Chunk,

@@ -14,7 +14,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from device.errors import InputError
+from device.core.errors import InputError
 
 __all__ = ["main"]
 
@@ -46,7 +46,7 @@ def _write_json_atomic(path: Path, data: dict[str, object]) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     from .registry import make_sampler
 
@@ -70,7 +70,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.core.command import run_command
 
     args = _parser().parse_args(argv)
     return run_command(_run, args)

@@ -61,10 +61,10 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from device.sphere import LUMINANCE_WEIGHTS, equirect_row_solid_angle, luminance
+from device.core.lightset import LightSet
+from device.core.sphere import LUMINANCE_WEIGHTS, equirect_row_solid_angle, luminance
 
 from ._pixels import clean_invalid
-from .base import LightSet
 from .distribution import ONE_MINUS_EPSILON, Distribution2D, halton, sample_one
 from .havran import PDF_UV_TO_OMEGA, hemisphere_to_square, square_to_hemisphere
 from .pharr import empty_lightset, rescale_to_total

@@ -29,10 +29,10 @@ import heapq
 import numpy as np
 from numba import njit
 
-from device.sphere import equirect_row_solid_angle
+from device.core.lightset import LightSet
+from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
 
 from ._pixels import clean_invalid
-from .base import LightSet
 from .pharr import empty_lightset
 
 __all__ = ["MedianCutSampler", "median_cut_regions"]
@@ -89,7 +89,7 @@ def _prepare_sat(img, omega):  # type: ignore[no-untyped-def]  # pragma: no cove
             sr += vr
             sg += vg
             sb += vb
-            acc += (0.2126 * vr + 0.7152 * vg + 0.0722 * vb) * om
+            acc += (LUM_R * vr + LUM_G * vg + LUM_B * vb) * om
             sat[r + 1, c + 1] = sat[r, c + 1] + acc
         total[0] += sr * om
         total[1] += sg * om
@@ -166,7 +166,7 @@ def _segment(x, xb, sin_p, cos_p):  # type: ignore[no-untyped-def]  # pragma: no
         s0 += vr
         s1 += vg
         s2 += vb
-        y = 0.2126 * vr + 0.7152 * vg + 0.0722 * vb
+        y = LUM_R * vr + LUM_G * vg + LUM_B * vb
         yy += y
         ys += y * sin_p[i]
         yc += y * cos_p[i]
@@ -185,7 +185,7 @@ def _segment_clean(img, r, c0, c1, sin_p, cos_p):  # type: ignore[no-untyped-def
         s0 += vr
         s1 += vg
         s2 += vb
-        y = 0.2126 * vr + 0.7152 * vg + 0.0722 * vb
+        y = LUM_R * vr + LUM_G * vg + LUM_B * vb
         yy += y
         ys += y * sin_p[c]
         yc += y * cos_p[c]

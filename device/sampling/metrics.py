@@ -37,9 +37,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from device.sphere import equirect_directions, equirect_row_solid_angle, luminance
+from device.core.lightset import LightSet
+from device.core.sphere import equirect_directions, equirect_row_solid_angle, luminance
 
-from .base import LightSet, sanitize_radiance
+from .base import sanitize_radiance
 
 __all__ = [
     "ErrorReference",

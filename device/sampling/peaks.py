@@ -31,10 +31,11 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components
 
-from device.errors import InputError
-from device.sphere import directions_from_angles, equirect_row_solid_angle, luminance
+from device.core.errors import InputError
+from device.core.lightset import LightSet
+from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
 
-from .base import LightSet, sanitize_radiance
+from .base import sanitize_radiance
 
 __all__ = ["Peak", "choose_light_count", "coarse_equirect", "find_peaks", "peak_threshold"]
 
@@ -169,7 +170,7 @@ def coarse_equirect(equirect: np.ndarray, height: int = 64) -> np.ndarray:
 
 
 def choose_light_count(equirect: np.ndarray, max_count: int, error_target: float, *,
-                       sample: Callable[[int], LightSet] | None = None,
+                       sample: Callable[[int], LightSet],
                        peaks: list[Peak] | None = None, peak_energy: float = 0.5,
                        kind: str = "diffuse", min_count: int = 12
                        ) -> tuple[int, list[Peak]]:
@@ -180,7 +181,8 @@ def choose_light_count(equirect: np.ndarray, max_count: int, error_target: float
     increasing order and the first whose light set meets ``error_target`` (``kind`` error of
     :mod:`device.sampling.metrics`, evaluated exactly against a 64 x 128 energy-preserving
     reduction of the map) is returned. Otherwise, or if none meets it, ``max_count``.
-    ``sample(count)`` builds the light set to judge (default: a fresh Q2-Tree).
+    ``sample(count)`` builds the light set to judge with the caller's sampler (the Q2-Tree passes
+    a fresh build of its own tree).
     """
     from .metrics import ErrorReference
 
@@ -190,14 +192,6 @@ def choose_light_count(equirect: np.ndarray, max_count: int, error_target: float
     found = find_peaks(clean) if peaks is None else peaks
     if sum(p.energy_fraction for p in found) < peak_energy:
         return max_count, found
-    if sample is None:
-        from .q2tree import Q2TreeSampler
-
-        q2 = Q2TreeSampler(hysteresis=0.0)  # zero hysteresis: each count equals a fresh build
-
-        def sample(c: int) -> LightSet:
-            return q2.sample(clean, c)
-
     ref = ErrorReference(coarse_equirect(clean))
     count = max(min_count, len(found))
     while count < max_count:

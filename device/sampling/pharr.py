@@ -30,10 +30,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from device.sphere import directions_from_angles, equirect_row_solid_angle
+from device.core.lightset import LightSet
+from device.core.sphere import (
+    LUM_B,
+    LUM_G,
+    LUM_R,
+    LUMINANCE_WEIGHTS,
+    directions_from_angles,
+    equirect_row_solid_angle,
+)
 
 from ._pixels import clean_invalid
-from .base import LightSet
 from .distribution import Distribution2D, halton
 
 __all__ = ["PharrSampler", "clean_lookup", "empty_lightset", "prepare_density",
@@ -65,7 +72,7 @@ def _prepare(img, omega):  # type: ignore[no-untyped-def]  # pragma: no cover - 
             sr += vr
             sg += vg
             sb += vb
-            f = (0.2126 * vr + 0.7152 * vg + 0.0722 * vb) * om
+            f = (LUM_R * vr + LUM_G * vg + LUM_B * vb) * om
             func[r, c] = f
             acc += f
             cum[r, c + 1] = acc * inv_w
@@ -126,7 +133,6 @@ def empty_lightset(method: str, extra: dict[str, object]) -> LightSet:
                     method=method, extra=dict(extra))
 
 
-_LUM = np.array([0.2126, 0.7152, 0.0722])
 
 
 class PharrSampler:
@@ -152,7 +158,7 @@ class PharrSampler:
         func, row_cdf, total, flags = prepare_density(equirect)
         extra: dict[str, object] = {"sanitized": flags} if any(flags.values()) else {}
         h, w = func.shape
-        if not total @ _LUM > 0:
+        if not total @ LUMINANCE_WEIGHTS > 0:
             return empty_lightset(self.name, extra)
         dist = Distribution2D(func, row_cdf=row_cdf)
         uv, pdf_uv = dist.sample(self._points(count))

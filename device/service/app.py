@@ -18,11 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
-import time
-import weakref
 from collections.abc import AsyncIterator, Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,62 +29,12 @@ from device.service.config import ServiceConfig
 from device.service.errors import ApiError, Handler, error_middleware
 from device.service.notify import Notifier
 from device.service.runner import PipelineLike, Runner
+from device.service.state import HOST, PORT, STATE, ServiceState
 
-__all__ = ["PORT", "STATE", "ServiceState", "create_app"]
+__all__ = ["create_app"]
 
 log = logging.getLogger(__name__)
 
-VERSION = "0.1.0"
-
-
-@dataclass
-class ServiceState:
-    """Everything the handlers share. ``config`` is replaced (never mutated) on PUT /config."""
-
-    config: ServiceConfig
-    token: str
-    probe_id: str
-    runner: Runner
-    camera: Any = None
-    advertiser: Any = None
-    notifier: Notifier = field(default_factory=lambda: Notifier({}))
-    websockets: weakref.WeakSet[web.WebSocketResponse] = field(default_factory=weakref.WeakSet)
-    ws_dropped: int = 0
-    ws_frames_skipped: int = 0
-    config_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    version: str = VERSION
-    started: float = field(default_factory=time.time)
-    make_camera: Callable[[], Any] | None = None
-    mdns_task: asyncio.Task[None] | None = None  # the mDNS registration while it runs
-    _camera_lock: threading.Lock = field(default_factory=threading.Lock)
-    _camera_error: Exception | None = None
-
-    def camera_or_make(self) -> Any:
-        """The camera, made now if nobody made it yet (blocking: call from a worker thread).
-        A bad camera spec (InputError) is remembered and raised again without retrying."""
-        from device.errors import InputError
-
-        with self._camera_lock:
-            if self._camera_error is not None:
-                raise self._camera_error
-            if self.camera is None and self.make_camera is not None:
-                try:
-                    self.camera = self.make_camera()
-                except InputError as e:
-                    self._camera_error = e
-                    raise
-            return self.camera
-
-    async def ensure_camera(self) -> Any:
-        """The camera, made off the loop if the pipeline has not made it yet (start-up)."""
-        if self.camera is not None:
-            return self.camera
-        return await asyncio.to_thread(self.camera_or_make)
-
-
-STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
-PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
-HOST: web.AppKey[str] = web.AppKey("lightprobe_host", str)
 
 CameraFactory = Callable[[], Any]
 PipelineFactory = Callable[[Any, ServiceConfig], PipelineLike]
@@ -166,7 +112,7 @@ def _warm_imports() -> None:
     on the import lock) for it later."""
     import cv2  # noqa: F401
 
-    import device.imageio  # noqa: F401
+    import device.core.imageio  # noqa: F401
 
 
 async def _warm_after_first_frame(st: ServiceState) -> None:
@@ -306,7 +252,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
     ``host`` are where the API listens (defaults from ``[service]``), for mDNS."""
-    from device.service import api
+    from device.service.routes import calibration, probe, q2tree
 
     app = web.Application(
         client_max_size=int(config.get("service", "client_max_size")),
@@ -325,12 +271,10 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
                       notifier=notifier or Notifier({}), make_camera=make_camera)
     state_holder["s"] = st
     app[STATE] = st
-    api.add_routes(app, Path(__file__).parent / "static")
-    from device.service import q2tree_api  # GET /api/v1/q2tree (binary tree for host-side merging)
-
-    q2tree_api.add_routes(app)
-    from device.service import calibration_api  # /api/v1/calibration (live calibration)
-    calibration_api.add_routes(app, getattr(make_pipeline, "state_dir", None))
+    static = Path(__file__).parent / "static"
+    probe.add_routes(app, static)
+    q2tree.add_routes(app)  # GET /api/v1/q2tree (binary tree for host-side merging)
+    calibration.add_routes(app, getattr(make_pipeline, "state_dir", None), static)  # live calibration
     app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)
     return app

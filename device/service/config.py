@@ -10,7 +10,7 @@ The file has four tables (every key optional; missing keys take the defaults bel
 Reading uses :mod:`tomllib`; writing is our own small serialiser for flat tables of strings,
 numbers, booleans and lists of strings, done atomically (temp file in the same folder, fsync,
 rename, fsync of the folder) so a crash at any instant leaves the old or the new file, never a torn
-one. Validation raises :class:`device.errors.InputError` naming the ``table.key`` at fault.
+one. Validation raises :class:`device.core.errors.InputError` naming the ``table.key`` at fault.
 """
 
 from __future__ import annotations
@@ -24,8 +24,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from device.errors import InputError
-from device.fsutil import atomic_write
+from device.core.errors import InputError
+from device.core.fsutil import atomic_write
+from device.sampling.registry import SAMPLERS as REGISTRY
 
 __all__ = [
     "SAMPLERS",
@@ -36,8 +37,8 @@ __all__ = [
     "validate_patch",
 ]
 
-# Sampler names the pipeline understands (CONVENTIONS.md `lightprobe sample --method`).
-SAMPLERS = ("q2tree", "pharr", "hemigon", "median-cut")
+# Sampler names the pipeline understands: the registry's (CONVENTIONS.md `lightprobe sample --method`)
+SAMPLERS = tuple(REGISTRY)
 
 # (type, default, validator description, check) per key; check returns True when valid.
 _Spec = tuple[type, Any, str, Any]
@@ -203,7 +204,7 @@ def dump_toml(data: dict[str, dict[str, Any]]) -> str:
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically (``device.fsutil.atomic_write``)."""
+    """Write ``text`` (UTF-8) to ``path`` atomically (``device.core.fsutil.atomic_write``)."""
     atomic_write(path, text.encode("utf-8"))
 
 

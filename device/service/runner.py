@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from device.sampling.base import LightSet
+from device.core.lightset import LightSet
 
 __all__ = ["FrameHub", "PipelineLike", "Runner"]
 
@@ -216,7 +216,7 @@ class Runner:
 
     # ---- the loop ---------------------------------------------------------------------------
     async def _run(self) -> None:
-        from device.errors import InputError
+        from device.core.errors import InputError
         from drivers.base import CameraError
 
         backoff = self.backoff_initial

@@ -2,7 +2,7 @@
 
 :class:`IoctlTransport` is the seam between the V4L2 logic (``drivers.v4l2.camera``) and the
 kernel. :class:`DeviceTransport` is the real one: ``os.open`` (non-blocking) + ``fcntl.ioctl`` +
-``mmap``. ``drivers.v4l2.fake.FakeV4L2Device`` implements the same interface for tests: it decodes
+``mmap``. ``sim.v4l2_fake.FakeV4L2Device`` implements the same interface for tests: it decodes
 the request numbers and struct bytes like the kernel would and records every call.
 
 errno mapping (done here, once): ENOENT/ENXIO at open -> CameraUnavailable, EACCES/EPERM ->

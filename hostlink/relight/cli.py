@@ -20,13 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import InputError
+from device.core.errors import InputError
 
-__all__ = ["load_lights", "main", "write_image"]
+__all__ = ["load_lights", "main"]
 
 
 def _lightset_from_json(doc: Any, where: str):  # type: ignore[no-untyped-def]
-    from device.sampling.base import LightSet
+    from device.core.lightset import LightSet
 
     try:
         return LightSet.from_json(doc)
@@ -62,7 +62,7 @@ def _lights_url(src: str) -> str:
 
 def load_lights(src: str, token: str | None = None) -> tuple[str, Any]:
     """-> ("map", equirect float32) or ("lights", LightSet)."""
-    from device.imageio import read_hdr_image
+    from device.core.imageio import read_hdr_image
 
     if src.startswith(("http://", "https://")):
         url = _lights_url(src)
@@ -88,22 +88,6 @@ def load_lights(src: str, token: str | None = None) -> tuple[str, Any]:
     if p.suffix.lower() not in (".exr", ".hdr"):
         raise InputError(f"{p}: --lights must be a URL, .exr, .hdr or .json", param="--lights")
     return "map", read_hdr_image(p)
-
-
-def write_image(path: Path, img: np.ndarray, mask: np.ndarray | None = None) -> None:
-    """PNG (tone-mapped, cv2) or EXR (linear, device.imageio.write_exr)."""
-    if path.suffix.lower() == ".exr":
-        from device.imageio import write_exr
-
-        write_exr(path, img.astype(np.float32), {"unit": "relative", "source": "lightprobe relight"})
-        return
-    import cv2
-
-    from hostlink.relight.render import tonemap
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), tonemap(img, mask)):
-        raise InputError(f"{path}: cannot write image", param="--out")
 
 
 def _parse_move(items: list[str], flag: str = "--move", form: str = "NAME=dx,dy,dz") -> list[tuple[str, np.ndarray]]:
@@ -146,6 +130,8 @@ def _run(a: argparse.Namespace) -> int:
     rl.set_equirect(lights) if kind == "map" else rl.set_lightset(lights)
     t0 = time.perf_counter()
     img, stats = rl.render(background=bg)
+    from hostlink.relight.render import write_image
+
     write_image(out, img, mask=None)
     if not a.quiet:
         print(f"relight: wrote {out} ({time.perf_counter() - t0:.3f} s, "
@@ -160,7 +146,7 @@ def _run(a: argparse.Namespace) -> int:
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.core.command import run_command
     from hostlink.relight.precompute import DEFAULT_TAU
 
     p = argparse.ArgumentParser(prog="lightprobe relight",

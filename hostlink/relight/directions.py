@@ -1,6 +1,6 @@
 """The 2^15 sample directions and their complete binary tree (depth 15).
 
-Each hemisphere (+y, -y; probe frame, ``device/sphere.py``) is an equal-area square of
+Each hemisphere (+y, -y; probe frame, ``device/core/sphere.py``) is an equal-area square of
 128 x 128 cells: Shirley-Chiu concentric map square -> disc, then Lambert's equal-area map disc ->
 hemisphere. Cells are ordered by hemisphere, then Morton (Z) order of their (i, j) cell index, so
 leaf ``l = hemisphere << 14 | morton(i, j)`` and every node of the complete binary tree covers a

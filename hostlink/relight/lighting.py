@@ -16,8 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit, prange
 
-from device.sampling.base import LightSet
-from device.sphere import directions_from_angles
+from device.core.lightset import LightSet
+from device.core.sphere import directions_from_angles
 from hostlink.relight.directions import NDIR, direction_to_leaf
 
 __all__ = [

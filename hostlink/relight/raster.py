@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from device.core.sphere import luminance
 from hostlink.relight.scene import Camera
 
 __all__ = ["Raster", "camera_basis", "lookup_equirect", "rasterize", "resolve", "tonemap", "view_rays",
@@ -126,7 +127,7 @@ def tonemap(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Linear HDR -> 8-bit BGR for cv2.imwrite: exposure puts the 99th luminance percentile
     (of ``mask`` pixels) at 0.9, then sRGB encoding. All-black input -> black image."""
     x = np.nan_to_num(np.asarray(img, np.float64), nan=0.0, posinf=0.0)
-    y = x @ np.array([0.2126, 0.7152, 0.0722])
+    y = luminance(np.asarray(x, np.float64))
     sel = y[mask] if mask is not None and mask.any() else y.ravel()
     ref = float(np.percentile(sel, 99)) if sel.size else 0.0
     x = np.clip(x * (0.9 / ref if ref > 0 else 0.0), 0, 1)
@@ -135,7 +136,7 @@ def tonemap(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 
 
 def lookup_equirect(img: np.ndarray, d: np.ndarray) -> np.ndarray:
-    from device.sphere import angles_from_directions
+    from device.core.sphere import angles_from_directions
 
     theta, phi = angles_from_directions(d.astype(np.float64))
     h, w = img.shape[:2]

@@ -28,9 +28,12 @@ skipped.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-from device.sampling.base import LightSet
+from device.core.errors import InputError
+from device.core.lightset import LightSet
 from hostlink.relight.directions import NDIR, node_directions, node_moments
 from hostlink.relight.kernels import shade_dynamic, shade_static, svc_weights
 from hostlink.relight.lighting import (
@@ -54,7 +57,7 @@ from hostlink.relight.raster import (
 )
 from hostlink.relight.scene import Camera, Material, Scene, rotation_matrix
 
-__all__ = ["Raster", "Relighter", "camera_basis", "rasterize", "tonemap"]
+__all__ = ["Raster", "Relighter", "camera_basis", "rasterize", "tonemap", "write_image"]
 
 
 def _interleave(n: int) -> np.ndarray:
@@ -363,3 +366,17 @@ class Relighter:
         return img, {"visible_vertices": float(len(visible)), "shaded_vertices": float(len(need_s)),
                      "occlusion_vertices": float(len(need_o)),
                      "mean_nodes": float(nodes.mean()) if len(nodes) else 0.0}
+
+
+def write_image(path: Path, img: np.ndarray, mask: np.ndarray | None = None) -> None:
+    """PNG (tone-mapped, cv2) or EXR (linear, device.core.imageio.write_exr)."""
+    if path.suffix.lower() == ".exr":
+        from device.core.imageio import write_exr
+
+        write_exr(path, img.astype(np.float32), {"unit": "relative", "source": "lightprobe relight"})
+        return
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), tonemap(img, mask)):
+        raise InputError(f"{path}: cannot write image", param="--out")

@@ -14,7 +14,7 @@ Scene file (JSON, ``version: 1``; mesh paths relative to the scene file)::
 
 Material types: ``lambert`` (kd), ``phong`` / ``blinn-phong`` (kd, ks, exponent), ``ward`` (kd,
 ks, alpha). Rotations are XYZ Euler angles in degrees, applied after scale and before translation.
-Errors in the file raise :class:`device.errors.InputError` naming the file (and line for OBJ).
+Errors in the file raise :class:`device.core.errors.InputError` naming the file (and line for OBJ).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import InputError
+from device.core.errors import InputError
 
 __all__ = [
     "MATERIAL_TYPES",

@@ -18,40 +18,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.healpix import face_xy_to_directions, nest_to_xyf
+from device.core.q2wire import jitter_directions
 
 from ._binning import FrameState, equirect_tables, healpix_tables
 
 __all__ = [
     "Pyramid",
     "centroid_directions",
-    "jitter_directions",
     "level_solid_angles",
-    "nodes_to_uniq",
     "pyramid_from_equirect",
     "pyramid_from_healpix",
     "reduce_healpix",
     "state_pyramid",
-    "uniq_to_nodes",
 ]
-
-
-def nodes_to_uniq(level: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """NUNIQ ids ``4 4^level + index`` (int64)."""
-    level = np.asarray(level, np.int64)
-    return (np.int64(4) << (2 * level)) + np.asarray(index, np.int64)
-
-
-def uniq_to_nodes(uniq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(level, NESTED index at nside 2^level) of NUNIQ ids."""
-    u = np.asarray(uniq, np.int64)
-    if np.any(u < 4):
-        raise ValueError("NUNIQ ids start at 4")
-    level = (np.floor(np.log2(u.astype(np.float64))).astype(np.int64) // 2) - 1
-    # guard the float log2 at exact powers of four
-    level = np.where(u >= (np.int64(4) << (2 * (level + 1))), level + 1, level)
-    level = np.where(u < (np.int64(4) << (2 * level)), level - 1, level)
-    return level, u - (np.int64(4) << (2 * level))
 
 
 @functools.lru_cache(maxsize=32)
@@ -122,38 +101,6 @@ def pyramid_from_equirect(clean: np.ndarray, nside: int, moments: bool,
     state = FrameState(equirect_tables(clean.shape[0], k, k), moments)
     state.load(np.ascontiguousarray(clean, np.float32).reshape(-1, 3))
     return state_pyramid(state)
-
-
-def _hash_unit(uniq: np.ndarray, seed: int, stream: int) -> np.ndarray:
-    """splitmix64 of (uniq, seed, stream) -> uniform floats in [0, 1) (deterministic)."""
-    with np.errstate(over="ignore"):
-        x = (uniq.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-             + np.uint64((seed * 2654435761 + stream * 40503) & 0xFFFFFFFFFFFFFFFF))
-        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        x = x ^ (x >> np.uint64(31))
-    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
-
-
-def _face_coords(uniq: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
-    """Directions of the points (fx, fy) in [0, 1]^2 of each node's own square."""
-    level, index = uniq_to_nodes(uniq)
-    out = np.empty((len(uniq), 3), np.float64)
-    for k in np.unique(level):
-        sel = level == k
-        ns = 1 << int(k)
-        ix, iy, face = nest_to_xyf(ns, index[sel])
-        out[sel] = face_xy_to_directions(face, (ix + fx[sel]) / ns, (iy + fy[sel]) / ns)
-    return out
-
-
-def jitter_directions(uniq: np.ndarray, seed: int, extent: float) -> np.ndarray:
-    """A fixed point per node: its centre jittered by ``extent`` of its size, hashed from
-    (level, index, seed), so a light stays put while its leaf survives (Wan et al. 2005)."""
-    uniq = np.asarray(uniq, np.int64)
-    fx = 0.5 + extent * (_hash_unit(uniq, seed, 1) - 0.5)
-    fy = 0.5 + extent * (_hash_unit(uniq, seed, 2) - 0.5)
-    return _face_coords(uniq, fx, fy)
 
 
 def centroid_directions(pyr: Pyramid, uniq: np.ndarray, seed: int, extent: float) -> np.ndarray:

@@ -60,19 +60,14 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import InputError
+from device.core.errors import InputError
+from device.core.lightset import LightSet
+from device.core.q2wire import jitter_directions, uniq_to_nodes
 
-from ..base import LightSet, sanitize_radiance
+from ..base import sanitize_radiance
 from . import _kernels
 from ._binning import FrameState, coarse_level, equirect_tables, healpix_tables
-from ._nodes import (
-    Pyramid,
-    jitter_directions,
-    level_solid_angles,
-    reduce_healpix,
-    state_pyramid,
-    uniq_to_nodes,
-)
+from ._nodes import Pyramid, level_solid_angles, reduce_healpix, state_pyramid
 
 __all__ = ["MAX_NSIDE", "Q2TreeSampler", "auto_nside"]
 

@@ -1,4 +1,4 @@
-"""``lightprobe serve``: run the probe service.
+"""``lightprobe serve``: run the probe service (wiring from :mod:`device.cli.bootstrap`).
 
 State directory: ``--state-dir``, else ``$STATE_DIRECTORY`` (systemd), else ``./state``. It holds
 the API token (mode 0600), the writable config (``config.toml``) and an optional
@@ -71,93 +71,8 @@ def load_service_config(config_arg: str | None, state_dir: Path, env: dict[str, 
     return ServiceConfig(cfg.data, target)
 
 
-def camera_factory(spec: str, scene: str | None, cache_dir: Path | None = None) -> Any:
-    """An unopened camera for ``--camera``; the simulator needs ``--scene`` (and keeps its lens
-    tables in ``cache_dir`` when given)."""
-    from device.errors import InputError
-
-    def make() -> Any:
-        if spec == "sim":
-            from sim.camera import SimCamera
-            from sim.scenarios import load_scene
-
-            return SimCamera(load_scene(scene or "flashlight"), cache_dir=cache_dir)
-        try:
-            from drivers.discovery import open_camera
-        except ImportError as e:
-            raise InputError(f"camera backend for {spec!r} is not available: {e}", param="--camera") from e
-        return open_camera(spec)
-
-    return make
-
-
-def load_calibration(state_dir: Path, camera: Any) -> Any:
-    """The calibration the pipeline uses, in this order:
-
-    1. the calibration store in the state dir (``calibration.store``: the current version, or the
-       newest valid earlier one when current is corrupt, with the error logged);
-    2. ``state_dir/calibration.json`` (a file an installer copied in by hand);
-    3. the camera's own ground truth (the simulator).
-
-    A hardware camera with none of these gets an InputError naming what to do.
-    """
-    from calibration.model import Calibration
-    from calibration.store import CalibrationStore
-    from device.errors import InputError
-
-    store = CalibrationStore(state_dir)
-    found = store.load()
-    if store.versions():  # a store that exists but is damaged: say so (a fresh unit has none)
-        for err in found.errors:
-            log.error("calibration store: %s", err)
-    if found.calibration is not None:
-        return found.calibration
-    p = state_dir / "calibration.json"
-    if p.exists():
-        try:
-            return Calibration.from_json(json.loads(p.read_text(encoding="utf-8")))
-        except (OSError, ValueError) as e:
-            raise InputError(f"{p}: {e}", param="calibration") from e
-    for attr in ("truth_calibration", "calibration"):
-        cal = getattr(camera, attr, None)
-        cal = cal() if callable(cal) else cal
-        if cal is not None:
-            return cal
-    raise InputError(f"no calibration for camera {getattr(camera, 'name', '?')!r} in {state_dir} "
-                     "(make one with 'lightprobe calibrate fisheye ... --state DIR')", param="calibration")
-
-
-class PipelineFactory:
-    """Builds ``device.pipeline.Pipeline`` from the service config; reconfigures it in place."""
-
-    def __init__(self, state_dir: Path, probe_id: str) -> None:
-        self.state_dir, self.probe_id = state_dir, probe_id
-
-    def pipeline_config(self, cfg: Any) -> Any:
-        from device.pipeline import PipelineConfig
-
-        return PipelineConfig(fps=cfg.get("pipeline", "fps"), sampler=cfg.get("pipeline", "sampler"),
-                              light_count=cfg.get("pipeline", "light_count"),
-                              max_exposures=cfg.get("pipeline", "max_exposures"),
-                              equirect_height=cfg.get("pipeline", "equirect_height"),
-                              nside=cfg.get("pipeline", "nside"), probe_id=self.probe_id,
-                              cache_dir=str(self.state_dir / "cache"))
-
-    def __call__(self, camera: Any, cfg: Any) -> Any:
-        from device.pipeline import Pipeline
-
-        return Pipeline(camera, load_calibration(self.state_dir, camera), self.pipeline_config(cfg))
-
-    def reconfigure(self, pipeline: Any, cfg: Any) -> None:
-        pipeline.reconfigure(self.pipeline_config(cfg))
-
-
-def pipeline_factory(state_dir: Path, probe_id: str) -> PipelineFactory:
-    return PipelineFactory(state_dir, probe_id)
-
-
 def _bind(host: str, port: int) -> socket.socket:
-    from device.errors import InputError
+    from device.core.errors import InputError
 
     infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     family, _, _, _, addr = infos[0]
@@ -216,6 +131,7 @@ def single_blas_thread(environ: Any) -> None:
 async def serve(a: argparse.Namespace) -> int:
     from aiohttp import web
 
+    from device.cli.bootstrap import camera_factory, pipeline_factory
     from device.service.app import create_app
     from device.service.auth import load_or_create_token
     from device.service.mdns import stable_probe_id
@@ -231,7 +147,8 @@ async def serve(a: argparse.Namespace) -> int:
     sock = _bind(host, port)
     port = sock.getsockname()[1]
     notifier = Notifier(env)
-    app = create_app(cfg, camera_factory(a.camera, a.scene, state_dir / "cache"), pipeline_factory(state_dir, probe_id),
+    make_camera = camera_factory(a.camera, a.scene, state_dir / "cache")
+    app = create_app(cfg, make_camera, pipeline_factory(state_dir, probe_id),
                      token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
                      backoff=(a.backoff_initial, a.backoff_max))
     runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=0.5, access_log=None)
@@ -242,14 +159,17 @@ async def serve(a: argparse.Namespace) -> int:
     print(f"lightprobe: dashboard {url}", flush=True)
     print(f"lightprobe: API token {token}  (state dir {state_dir.resolve()})", flush=True)
     notifier.ready(f"serving on {url}")
-    from device.errors import InputError
-    from device.service.app import STATE
+    from device.core.errors import InputError
+    from device.service.state import STATE
+    from drivers.base import CameraError
 
     try:  # made off the loop while the API already answers; a bad --camera/--scene still exits 2
         await app[STATE].ensure_camera()
     except InputError:
         await asyncio.wait_for(runner.cleanup(), 2.7)
         raise
+    except CameraError as e:  # absent hardware: stay up, retry, say why in /status (no lights)
+        log.warning("camera %s: %s; the service keeps retrying", a.camera, e)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -270,7 +190,8 @@ async def serve(a: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lightprobe serve", description="Run the probe service "
                                 "(HTTP/WebSocket API under /api/v1, dashboard at /, mDNS advertising).")
-    p.add_argument("--camera", default="sim", help="sim | auto | v4l2:/dev/videoN | libcamera | uvc[:VID:PID] (default sim)")
+    p.add_argument("--camera", default="sim", help="auto | v4l2:/dev/videoN | libcamera | uvc[:VID:PID], or the "
+                   "simulator: sim | v4l2-fake (default sim; auto never picks the simulator)")
     p.add_argument("--scene", default=None, help="simulator scene NAME or map PATH (default flashlight)")
     p.add_argument("--host", default=None, help="listen address (default from config, 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="listen port (default from config, 8080; 0 = any)")
@@ -286,7 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.core.command import run_command
 
     a = build_parser().parse_args(argv)
     _setup_logging(a.log_format, a.log_level)

@@ -11,14 +11,14 @@ import asyncio
 import sys
 from pathlib import Path
 
-from device.cli import run_command
+from device.core.command import run_command
 
 __all__ = ["main"]
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lightprobe run-pipeline", description=__doc__.splitlines()[0])
-    p.add_argument("--camera", default="sim", help="camera spec: sim (default), v4l2:/dev/videoN, libcamera, uvc, auto")
+    p.add_argument("--camera", default="sim", help="camera spec: sim (default), v4l2:/dev/videoN, libcamera, uvc, auto (hardware only)")
     p.add_argument("--scene", default="flashlight", help="simulated scene: scenario name or equirect file (sim only)")
     p.add_argument("--frames", type=int, default=10, help="frames to run (0 = until interrupted)")
     p.add_argument("--sampler", default="q2tree", help="pharr, hemigon, q2tree or median-cut")
@@ -29,7 +29,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 async def _run(a: argparse.Namespace) -> int:
-    from device.imageio import write_exr
+    from device.core.imageio import write_exr
     from device.pipeline import Pipeline, PipelineConfig
 
     camera, calibration = _open(a)
@@ -55,28 +55,21 @@ async def _run(a: argparse.Namespace) -> int:
 
 
 def _open(a: argparse.Namespace):  # type: ignore[no-untyped-def]
-    from calibration.model import Calibration
-    from device.errors import InputError
-    from drivers.base import Camera
+    """The camera (:func:`device.cli.bootstrap.open_cli_camera`) and its calibration: --calibration,
+    else the camera's own (the simulator's truth); InputError (exit 2) otherwise."""
+    import json
 
-    camera: Camera
-    if a.camera == "sim":
-        from sim.camera import SimCamera
+    from device.cli.bootstrap import open_cli_camera
+    from device.core.calibration import Calibration
+    from device.core.errors import InputError
 
-        camera = SimCamera(a.scene)
-        cal = camera.truth_calibration()
-    else:
-        from drivers.discovery import open_camera
-
-        camera = open_camera(a.camera)
-        cal = None
+    camera = open_cli_camera(a.camera, a.scene)
     if a.calibration is not None:
-        import json
-
         try:
-            cal = Calibration.from_json(json.loads(a.calibration.read_text()))
+            return camera, Calibration.from_json(json.loads(a.calibration.read_text()))
         except (OSError, ValueError) as e:
             raise InputError(f"{a.calibration}: {e}", param="--calibration") from e
+    cal = camera.factory_calibration()
     if cal is None:
         raise InputError("a hardware camera needs --calibration FILE", param="--calibration")
     return camera, cal

@@ -19,7 +19,7 @@
 At most one session runs (409 for a second). A session ends by itself after ``timeout_s`` or
 when nobody polled it for ``idle_timeout_s``. Blocking work (detection, solves, the store, JPEG)
 runs in worker threads. The technician's page is ``/calibrate`` (``static/calibrate.html`` + ``calibrate.js``).
-Wire it with ``calibration_api.add_routes(app, state_dir)``.
+Wire it with ``add_routes(app, state_dir)``.
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
-from device.errors import InputError
-from device.service.app import STATE, ServiceState
+from device.core.errors import InputError
 from device.service.errors import ApiError
+from device.service.state import STATE, ServiceState
 
 __all__ = ["LiveSession", "add_routes"]
 
@@ -175,7 +175,7 @@ def _serving(st: ServiceState, desk: Desk) -> Any:
     cal = getattr(st.runner.pipeline, "calibration", None)
     if cal is not None or desk.state_dir is None:
         return cal
-    from device.service.cli import load_calibration
+    from calibration.store import load_calibration
 
     try:
         return load_calibration(desk.state_dir, st.camera)
@@ -271,8 +271,8 @@ async def _capture_loop(st: ServiceState, camera: Any, sess: LiveSession) -> Non
 
 def _commit_blocking(desk: Desk, sess: LiveSession) -> dict[str, Any]:
     """Write the solve into the store as a new version (other sections kept)."""
-    from calibration.model import Calibration
     from calibration.store import CalibrationStore
+    from device.core.calibration import Calibration
 
     res = sess.live.result
     if res is None or desk.state_dir is None:
@@ -284,27 +284,14 @@ def _commit_blocking(desk: Desk, sess: LiveSession) -> dict[str, Any]:
             "fx": float(res.model.K[0, 0]), "fy": float(res.model.K[1, 1]), "fov_deg": res.model.fov_deg}
 
 
-def _simulated_technician(camera: Any, sess: LiveSession) -> bool:
-    """On the simulator nobody stands in front of the lens: unless a board is already shown (a
-    test's own schedule), a simulated technician (:meth:`sim.board.BoardSchedule.technician`)
-    holds the session's board, so ``make run`` demonstrates the whole routine. Hardware cameras
-    have no ``show_board``; returns whether the technician was sent in."""
-    show = getattr(camera, "show_board", None)
-    if not callable(show) or getattr(camera, "board_schedule", None) is not None:
-        return False
-    from sim.board import BoardSchedule
-
-    b = sess.live.board
-    show(BoardSchedule.technician(b.cols, b.rows, b.square))
-    return True
-
-
 async def _run_session(st: ServiceState, desk: Desk, sess: LiveSession, cam: Any) -> None:
-    from drivers.base import CameraError
+    from drivers.base import BoardTarget, CameraError
 
     try:
         async with st.runner.camera_lease(cam) as camera:
-            technician = _simulated_technician(camera, sess)
+            b = sess.live.board
+            # A bench rig (or the simulator's technician) can present the board itself
+            presented = camera.present_board(BoardTarget(b.cols, b.rows, b.square))
             sess.leased.set()
             try:
                 fe = getattr(sess.base, "fisheye", None)
@@ -319,8 +306,8 @@ async def _run_session(st: ServiceState, desk: Desk, sess: LiveSession, cam: Any
                 sess.state = "capturing"
                 await _capture_loop(st, camera, sess)
             finally:
-                if technician:
-                    camera.show_board(None)
+                if presented:
+                    camera.present_board(None)
             if sess.stop == "commit":
                 sess.state = "committing"
                 sess.committed = await asyncio.to_thread(_commit_blocking, desk, sess)
@@ -410,7 +397,7 @@ async def get_live(request: web.Request) -> web.Response:
 
 
 def _encode(frame: np.ndarray) -> bytes:
-    from device.service.api import _encode_jpeg
+    from device.service.encode import encode_jpeg
 
     rgb = frame if frame.dtype == np.uint8 and frame.ndim == 3 else None
     if rgb is None:
@@ -418,7 +405,7 @@ def _encode(frame: np.ndarray) -> bytes:
 
         g = frame_to_gray(frame)
         rgb = np.repeat(g[..., None], 3, axis=2)
-    return _encode_jpeg(rgb, 80)
+    return encode_jpeg(rgb, 80)
 
 
 async def live_frame(request: web.Request) -> web.Response:
@@ -473,8 +460,9 @@ def _static(path: Path, content_type: str) -> Any:
     return handler
 
 
-def add_routes(app: web.Application, state_dir: str | Path | None) -> None:
-    """Register the routes; ``state_dir`` holds the calibration store (None: read-only)."""
+def add_routes(app: web.Application, state_dir: str | Path | None, static_dir: Path) -> None:
+    """Register the routes; ``state_dir`` holds the calibration store (None: read-only),
+    ``static_dir`` the technician's page."""
     app[DESK] = Desk(Path(state_dir) if state_dir is not None else None)
     r = app.router
     r.add_get(ROUTE, get_calibration)
@@ -483,7 +471,7 @@ def add_routes(app: web.Application, state_dir: str | Path | None) -> None:
     r.add_delete(f"{ROUTE}/live", cancel_live)
     r.add_get(f"{ROUTE}/live/frame.jpg", live_frame)
     r.add_post(f"{ROUTE}/live/commit", commit_live)
-    static = Path(__file__).parent / "static"
+    static = static_dir
     for url, name, kind in (("/calibrate", "calibrate.html", "text/html"),
                             ("/static/calibrate.js", "calibrate.js", "text/javascript")):
         r.add_get(url, _static(static / name, kind))

@@ -3,7 +3,8 @@
 A Q2-Tree (Wan et al. 2005) partitions the sphere into HEALPix NESTED quads; its leaves are
 enough to rebuild the whole tree (every interior node is the sum of its children, Nikodym et al.
 2013, Algorithm 2 step 1). A leaf at level k (nside 2^k) with NESTED index i has the NUNIQ id
-``u = 4 4^k + i`` (``device.sampling.q2tree.nodes_to_uniq``).
+``u = 4 4^k + i`` (:func:`nodes_to_uniq`). This module is the wire format and the node
+arithmetic both sides share (ids, levels, the fixed jittered point of a leaf's light).
 
 Format, version 1 (all integers little-endian)::
 
@@ -38,9 +39,20 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import LightprobeError
+from device.core.errors import LightprobeError
 
-__all__ = ["MAGIC", "Q2DecodeError", "Q2Tree", "decode_q2tree", "encode_q2tree"]
+__all__ = [
+    "MAGIC",
+    "Q2DecodeError",
+    "Q2Tree",
+    "decode_q2tree",
+    "encode_q2tree",
+    "jitter_directions",
+    "node_points",
+    "nodes_to_uniq",
+    "uniq_levels",
+    "uniq_to_nodes",
+]
 
 MAGIC = b"LPQ2"
 VERSION = 1
@@ -53,20 +65,62 @@ class Q2DecodeError(LightprobeError, ValueError):
     """A Q2-Tree encoding is corrupt, truncated or not a Q2-Tree encoding."""
 
 
-def _uniq(level: np.ndarray, index: np.ndarray) -> np.ndarray:
-    return (np.int64(4) << (2 * np.asarray(level, np.int64))) + np.asarray(index, np.int64)
+def nodes_to_uniq(level: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """NUNIQ ids ``4 4^level + index`` (int64)."""
+    level = np.asarray(level, np.int64)
+    return (np.int64(4) << (2 * level)) + np.asarray(index, np.int64)
 
 
-def _levels(uniq: np.ndarray) -> np.ndarray:
-    """Level of each NUNIQ id (exact integer arithmetic: bit length of u is 2 level + 3 or 4)."""
+def uniq_to_nodes(uniq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(level, NESTED index at nside 2^level) of NUNIQ ids (exact: the float log2 is guarded
+    at the powers of four)."""
     u = np.asarray(uniq, np.int64)
-    level = np.zeros(u.shape, np.int64)
-    v = u >> 4  # level 0 ids are 4..15
-    while np.any(v > 0):
-        nz = v > 0
-        level[nz] += 1
-        v = v >> 2
-    return level
+    if np.any(u < 4):
+        raise ValueError("NUNIQ ids start at 4")
+    level = (np.floor(np.log2(u.astype(np.float64))).astype(np.int64) // 2) - 1
+    level = np.where(u >= (np.int64(4) << (2 * (level + 1))), level + 1, level)
+    level = np.where(u < (np.int64(4) << (2 * level)), level - 1, level)
+    return level, u - (np.int64(4) << (2 * level))
+
+
+def uniq_levels(uniq: np.ndarray) -> np.ndarray:
+    """Level of each NUNIQ id."""
+    return uniq_to_nodes(uniq)[0]
+
+
+def _hash_unit(uniq: np.ndarray, seed: int, stream: int) -> np.ndarray:
+    """splitmix64 of (uniq, seed, stream) -> uniform floats in [0, 1) (deterministic)."""
+    with np.errstate(over="ignore"):
+        x = (uniq.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+             + np.uint64((seed * 2654435761 + stream * 40503) & 0xFFFFFFFFFFFFFFFF))
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        x = x ^ (x >> np.uint64(31))
+    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+
+
+def node_points(uniq: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
+    """Directions of the points (fx, fy) in [0, 1]^2 of each node's own square."""
+    from .healpix import face_xy_to_directions, nest_to_xyf
+
+    level, index = uniq_to_nodes(uniq)
+    out = np.empty((len(uniq), 3), np.float64)
+    for k in np.unique(level):
+        sel = level == k
+        ns = 1 << int(k)
+        ix, iy, face = nest_to_xyf(ns, index[sel])
+        out[sel] = face_xy_to_directions(face, (ix + fx[sel]) / ns, (iy + fy[sel]) / ns)
+    return out
+
+
+def jitter_directions(uniq: np.ndarray, seed: int, extent: float) -> np.ndarray:
+    """A fixed point per node: its centre jittered by ``extent`` of its size, hashed from
+    (level, index, seed), so a light stays put while its leaf survives (Wan et al. 2005). The
+    probe and a host merging trees place a leaf's light at the same point."""
+    uniq = np.asarray(uniq, np.int64)
+    fx = 0.5 + extent * (_hash_unit(uniq, seed, 1) - 0.5)
+    fy = 0.5 + extent * (_hash_unit(uniq, seed, 2) - 0.5)
+    return node_points(uniq, fx, fy)
 
 
 @dataclass
@@ -95,11 +149,11 @@ class Q2Tree:
         """From (level, NESTED index) leaf arrays, e.g. ``Q2TreeSampler.to_nodes()``."""
         level = np.asarray(level, np.int64)
         top = int(level.max()) if max_level is None and level.size else int(max_level or 0)
-        return cls(_uniq(level, index), rgb, top, dict(meta or {}))
+        return cls(nodes_to_uniq(level, index), rgb, top, dict(meta or {}))
 
     @property
     def level(self) -> np.ndarray:
-        return _levels(self.uniq)
+        return uniq_levels(self.uniq)
 
     @property
     def index(self) -> np.ndarray:
@@ -162,7 +216,7 @@ def check_partition(uniq: np.ndarray, max_level: int) -> None:
         raise Q2DecodeError("leaf ids must be >= 4 and strictly increasing")
     if int(uniq[-1]) >= (4 << (2 * (max_level + 1))):
         raise Q2DecodeError(f"leaf id {int(uniq[-1])} is deeper than max_level {max_level}")
-    level = _levels(uniq)
+    level = uniq_levels(uniq)
     index = uniq - (np.int64(4) << (2 * level))
     shift = 2 * (max_level - level)
     start = index << shift  # first descendant at max_level

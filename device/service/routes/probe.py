@@ -16,10 +16,11 @@ from typing import Any
 import numpy as np
 from aiohttp import WSMsgType, web
 
-from device.errors import InputError
-from device.service.app import STATE, ServiceState
+from device.core.errors import InputError
 from device.service.config import RESTART_KEYS, SAMPLERS, save_config
+from device.service.encode import encode_hdr, encode_jpeg
 from device.service.errors import ApiError
+from device.service.state import STATE, ServiceState
 
 __all__ = ["add_routes"]
 
@@ -29,23 +30,6 @@ API = "/api/v1"
 STATIC_FILES = {"index.html": "text/html", "app.js": "text/javascript", "style.css": "text/css"}
 
 
-# ---- pure helpers ---------------------------------------------------------------------------------
-def _encode_jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise RuntimeError("JPEG encoding failed")
-    return buf.tobytes()
-
-
-def _encode_hdr(img: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".hdr", np.ascontiguousarray(np.asarray(img, np.float32)[..., ::-1]))
-    if not ok:
-        raise RuntimeError("Radiance HDR encoding failed")
-    return buf.tobytes()
 
 
 # ---- helpers on the state -------------------------------------------------------------------------
@@ -135,7 +119,7 @@ async def lights(request: web.Request) -> web.Response:
 
 
 async def probe_exr(request: web.Request) -> web.Response:
-    from device.imageio import exr_bytes
+    from device.core.imageio import exr_bytes
 
     st = request.app[STATE]
     r = _current(st)
@@ -150,7 +134,7 @@ async def probe_exr(request: web.Request) -> web.Response:
 async def probe_hdr(request: web.Request) -> web.Response:
     st = request.app[STATE]
     r = _current(st)
-    data = await _cached(st, "hdr", _encode_hdr, r.equirect)
+    data = await _cached(st, "hdr", encode_hdr, r.equirect)
     return web.Response(body=data, content_type="image/vnd.radiance",
                         headers={"Content-Disposition": 'inline; filename="probe.hdr"'})
 
@@ -163,11 +147,11 @@ async def preview(request: web.Request) -> web.Response:
         raise InputError(f"view must be 'fisheye' or 'equirect', got {view[:40]!r}", param="view")
     r = _current(st)
     if view == "fisheye":
-        data = await _cached(st, "jpg-fisheye", _encode_jpeg, np.asarray(r.preview, np.uint8))
+        data = await _cached(st, "jpg-fisheye", encode_jpeg, np.asarray(r.preview, np.uint8))
     else:
         from device.tonemap import tone_map  # the same operator as the fisheye preview
 
-        data = await _cached(st, "jpg-equirect", lambda m: _encode_jpeg(tone_map(m)), r.equirect)
+        data = await _cached(st, "jpg-equirect", lambda m: encode_jpeg(tone_map(m)), r.equirect)
     return web.Response(body=data, content_type="image/jpeg")
 
 

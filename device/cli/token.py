@@ -9,9 +9,9 @@ __all__ = ["main"]
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.cli.serve import state_dir_from
+    from device.core.command import run_command
     from device.service.auth import load_or_create_token, read_token
-    from device.service.cli import state_dir_from
 
     p = argparse.ArgumentParser(prog="lightprobe token", description="Print the API bearer token "
                                 "that write endpoints (PUT /api/v1/config) require.")

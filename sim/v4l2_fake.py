@@ -33,9 +33,8 @@ import cv2
 import numpy as np
 
 from drivers.base import CameraDisconnected, CameraUnavailable
-
-from ._ioctl import IoctlError
-from ._structs import ABI64, V4L2Abi
+from drivers.v4l2._ioctl import IoctlError
+from drivers.v4l2._structs import ABI64, V4L2Abi
 
 __all__ = ["FakeV4L2Device", "FakeV4L2Node", "rgb_to_yuyv", "sim_scene"]
 

@@ -1,7 +1,7 @@
 """Reading and writing HDR images: OpenEXR (through the OpenEXR package) and Radiance .hdr.
 
 OpenCV 5's PyPI wheel cannot read EXR, so EXR always goes through ``OpenEXR``. Images are returned
-as float32 (H, W, 3) linear RGB. Every failure raises :class:`device.errors.InputError` naming
+as float32 (H, W, 3) linear RGB. Every failure raises :class:`device.core.errors.InputError` naming
 the file.
 """
 

@@ -7,7 +7,7 @@ absent in the file, never filled with made-up values. Until a technician calibra
 simulator's ground truth fills it (``sim.camera.SimCamera.truth_calibration``).
 
 Frames: the fisheye model maps *camera-frame* directions (OpenCV: x right, y down, z along the
-optical axis) to pixels; ``device.sphere.CAMERA_TO_PROBE`` takes camera directions to the probe
+optical axis) to pixels; ``device.core.sphere.CAMERA_TO_PROBE`` takes camera directions to the probe
 frame (+y up).
 """
 
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import InputError
+from device.core.errors import InputError
 
 __all__ = [
     "Calibration",
@@ -31,6 +31,7 @@ __all__ = [
     "Pose",
     "Response",
     "Vignetting",
+    "repair_inverse",
 ]
 
 
@@ -131,6 +132,34 @@ class FisheyeModel:
         )
 
 
+def repair_inverse(table: np.ndarray) -> np.ndarray:
+    """The one repair rule for an inverse response table: a finite, non-negative,
+    non-decreasing (levels, 3) float64 copy.
+
+    Solvers can return NaN/Inf for codes no sample constrained (OpenCV 5's ``CalibrateRobertson``
+    for the darkest codes; Debevec on sparse stacks): those entries are interpolated from their
+    finite neighbours (the nearest finite value beyond the ends), negatives clipped to 0, then a
+    running maximum makes the table monotone. A channel with no finite entry is a failed solve:
+    :class:`InputError` (the stack was not static or not exposed). A 1-D table applies to all
+    three channels. Normalisation is the caller's (:meth:`Response.normalised`).
+    """
+    t = np.array(table, dtype=np.float64, copy=True)
+    if t.ndim == 1:
+        t = np.repeat(t[:, None], 3, axis=1)
+    if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] < 2:
+        raise InputError(f"response table must be (levels, 3), got {t.shape}", param="response")
+    idx = np.arange(t.shape[0])
+    for c in range(3):
+        col = t[:, c]
+        ok = np.isfinite(col)
+        if not ok.any():
+            raise InputError(f"response solve returned no finite values in channel {c} "
+                             "(is the bracket static and exposed?)", param="response")
+        col = np.interp(idx, idx[ok], col[ok]) if not ok.all() else col
+        t[:, c] = np.maximum.accumulate(np.clip(col, 0.0, None))
+    return t
+
+
 @dataclass(frozen=True)
 class Response:
     """Camera response: pixel value -> relative linear exposure (irradiance x time, per channel).
@@ -152,6 +181,12 @@ class Response:
         z = np.arange(1 << bits, dtype=np.float64)
         lin = np.clip((z - black_level) / (white - black_level), 0.0, None)
         return cls("linear", bits, np.repeat(lin[:, None], 3, axis=1), "linear")
+
+    def normalised(self) -> Response:
+        """The same response scaled so the largest channel's full-scale code maps to 1 (the
+        exposure that saturates), as :meth:`linear` is: the convention every solver returns."""
+        top = float(np.max(self.inverse[-1]))
+        return Response(self.model, self.bits, self.inverse / (top if top > 0 else 1.0), self.method)
 
     def to_json(self) -> dict[str, Any]:
         return {"model": self.model, "bits": self.bits, "method": self.method,

@@ -1,13 +1,13 @@
 """``GET /api/v1/q2tree``: the compact Q2-Tree of the probe's latest map, for host-side merging.
 
-The tree is built fresh on the latest frame's map (``Q2TreeSampler`` with zero hysteresis and
+The tree is built fresh on the latest frame's published map (``Q2TreeSampler`` with zero hysteresis and
 jitter placement, so it is a function of the map alone and the host can reproduce the lights
 from the leaves), with ``count`` lights (query, default ``pipeline.light_count``). The body is
-the binary encoding of :mod:`hostlink.q2encode` (``application/x-lightprobe-q2tree``); the frame,
+the binary encoding of :mod:`device.core.q2wire` (``application/x-lightprobe-q2tree``); the frame,
 probe id, unit and timestamp travel in ``X-Lightprobe-*`` headers. Encoded once per frame and
 count (the runner clears its cache on every new frame); the tree is built in a worker thread.
 
-Wire it with ``device.service.q2tree_api.add_routes(app)`` after ``api.add_routes``.
+Wire it with ``add_routes(app)`` after :func:`device.service.routes.probe.add_routes`.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
-from device.errors import InputError
-from device.service.app import STATE
+from device.core.errors import InputError
 from device.service.errors import ApiError
+from device.service.state import STATE
 
 __all__ = ["CONTENT_TYPE", "add_routes", "q2tree_bytes", "q2tree_handler"]
 
@@ -30,33 +30,21 @@ ROUTE = "/api/v1/q2tree"
 
 
 def q2tree_bytes(result: Any, count: int, nside_max: int = 256) -> bytes:
-    """Encoding of the Q2-Tree with ``count`` lights over ``result``'s map (blocking: run in a
-    thread). Uses the NESTED ``result.healpix`` when the frame has one (the pipeline's map),
-    else the equirect map; the tree's finest level is ``min(map nside, nside_max)``."""
-    from device.sampling.q2tree import Q2TreeSampler, nodes_to_uniq
-    from device.sampling.q2tree._nodes import pyramid_from_equirect, pyramid_from_healpix
+    """Encoding of the Q2-Tree with ``count`` lights over ``result.equirect`` (blocking: run in
+    a thread): the map the light sets and ``probe.exr`` publish (the upper hemisphere), so the
+    leaves sum to the served map's integral; the tree's finest level is ``min(auto nside,
+    nside_max)``."""
+    from device.core.q2wire import Q2Tree, encode_q2tree, nodes_to_uniq
+    from device.sampling.base import sanitize_radiance
+    from device.sampling.q2tree import Q2TreeSampler
+    from device.sampling.q2tree._nodes import pyramid_from_equirect
     from device.sampling.q2tree.sampler import auto_nside
-    from hostlink.q2encode import Q2Tree, encode_q2tree
 
-    hp = getattr(result, "healpix", None)
-    if hp is not None:
-        hp = np.asarray(hp, np.float64)
-        nside = round(float(np.sqrt(hp.shape[0] / 12)))
-        top = min(nside, nside_max)
-        sampler = Q2TreeSampler(top, hysteresis=0.0, placement="jitter")
-        sampler.sample_healpix(hp, nside, count)
-        clean = np.where(np.isfinite(hp) & (hp > 0), hp, 0.0)
-        if top < nside:
-            clean = clean.reshape(-1, (nside // top) ** 2, 3).mean(axis=1)
-        pyr = pyramid_from_healpix(clean, top, False)
-    else:
-        from device.sampling.base import sanitize_radiance
-
-        clean, _ = sanitize_radiance(np.asarray(result.equirect))
-        top = min(auto_nside(clean.shape[0]), nside_max)
-        sampler = Q2TreeSampler(top, hysteresis=0.0, placement="jitter")
-        sampler.sample(clean, count)
-        pyr = pyramid_from_equirect(clean, top, False)
+    clean, _ = sanitize_radiance(np.asarray(result.equirect))
+    top = min(auto_nside(clean.shape[0]), nside_max)
+    sampler = Q2TreeSampler(top, hysteresis=0.0, placement="jitter")
+    sampler.sample(clean, count)
+    pyr = pyramid_from_equirect(clean, top, False)
     level, index = sampler.to_nodes()
     uniq = nodes_to_uniq(level, index)
     return encode_q2tree(Q2Tree(uniq, pyr.rgb[uniq], pyr.max_level))

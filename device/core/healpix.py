@@ -1,6 +1,6 @@
 """HEALPix in the NESTED scheme, written here so the service has no GPL dependency.
 
-Angles follow the probe convention of ``device.sphere``: ``theta`` is the polar angle from +y and
+Angles follow the probe convention of ``device.core.sphere``: ``theta`` is the polar angle from +y and
 ``phi`` the azimuth, so a HEALPix map here is the standard one with (theta, phi) read in the probe
 frame. A pixel p at nside N has children 4p .. 4p+3 at nside 2N, so the descendants of any quad
 are one contiguous index range at a finer level.

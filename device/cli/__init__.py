@@ -1,9 +1,13 @@
 """The ``lightprobe`` command line: a thin dispatcher to each command's own module.
 
-Each command lives beside the code it drives and exposes ``main(argv) -> int``; importing this
-module imports none of them, so ``lightprobe --help`` is instant and a broken optional backend
-cannot break unrelated commands. Exit codes (CONVENTIONS.md): 0 success, 2 bad arguments or bad
-input (one line naming the file or parameter), 1 other failures.
+A command that drives one package lives beside it (``cameras``: ``drivers``, ``fuse``:
+``device.hdr``, ``sample``: ``device.sampling``, ``discover`` and ``relight``: ``hostlink``,
+``bench``: ``bench``); the commands that wire a whole probe together (``serve``, ``token``,
+``run-pipeline``, ``calibrate``) live in this package, the top of the stack, with the one
+bootstrap that builds cameras, calibrations and pipelines for them (:mod:`.bootstrap`). Each
+exposes ``main(argv) -> int``; importing this module imports none of them, so ``lightprobe
+--help`` is instant and a broken optional backend cannot break unrelated commands. Exit codes:
+:mod:`device.core.command`.
 """
 
 from __future__ import annotations
@@ -12,16 +16,16 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["main"]
+__all__ = ["COMMANDS", "main"]
 
 # command -> (module, one-line help). The module's main(argv) parses its own options.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "serve": ("device.service.cli", "run the probe service"),
-    "token": ("device.service.cli_token", "print the API bearer token"),
+    "serve": ("device.cli.serve", "run the probe service"),
+    "token": ("device.cli.token", "print the API bearer token"),
     "fuse": ("device.hdr.cli", "fuse an exposure stack into a linear HDR image"),
     "sample": ("device.sampling.cli", "sample an equirect map into a light set"),
-    "run-pipeline": ("device.run", "run the capture pipeline on a camera and print per-frame stats"),
-    "calibrate": ("calibration.cli", "calibration routines (fisheye, response, photometric, ...)"),
+    "run-pipeline": ("device.cli.run_pipeline", "run the capture pipeline on a camera and print per-frame stats"),
+    "calibrate": ("device.cli.calibrate", "calibration routines (fisheye, response, photometric, ...)"),
     "cameras": ("drivers.cli", "list attached cameras and their capabilities"),
     "discover": ("hostlink.cli", "list probes on the LAN"),
     "relight": ("hostlink.relight.cli", "relight a 3D scene with a probe's lights"),
@@ -51,19 +55,3 @@ def main(argv: list[str] | None = None) -> int:
         raise
     return int(module.main(argv[1:]) or 0)
 
-
-def run_command(fn, *args, **kwargs) -> int:  # type: ignore[no-untyped-def]
-    """Run a command body, mapping InputError to exit 2 and a one-line message."""
-    from device.errors import InputError
-
-    try:
-        return int(fn(*args, **kwargs) or 0)
-    except InputError as e:
-        print(f"lightprobe: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -18,6 +18,9 @@ import numpy as np
 __all__ = [
     "CAMERA_TO_PROBE",
     "LUMINANCE_WEIGHTS",
+    "LUM_B",
+    "LUM_G",
+    "LUM_R",
     "angles_from_directions",
     "directions_from_angles",
     "equirect_directions",
@@ -29,6 +32,8 @@ __all__ = [
 
 # Rec. 709 / sRGB primaries, linear light.
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+# The same weights as Python floats, for compiled kernels (numba folds them as constants)
+LUM_R, LUM_G, LUM_B = (float(w) for w in LUMINANCE_WEIGHTS)
 
 # The fisheye camera frame (OpenCV: x right, y down, z along the optical axis) to the probe frame.
 # The lens looks up: the optical axis is the zenith (+y); image right is +x; image down is -z,

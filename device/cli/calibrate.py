@@ -1,4 +1,5 @@
-"""``lightprobe calibrate ...``: calibration routines for technicians.
+"""``lightprobe calibrate ...``: calibration routines for technicians (the routines themselves are
+in :mod:`calibration`; captures through the probe use :mod:`device.cli.bootstrap`).
 
 Subcommands: ``fisheye`` (checkerboard photos), ``response`` (bracketed photos), ``photometric``
 (lux meter + probe map), ``vignetting`` (flat field), ``mask`` (lens frame), ``pose`` (installer
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import InputError
+from device.core.errors import InputError
 
 __all__ = ["main"]
 
@@ -28,7 +29,7 @@ def _err(msg: str, param: str | None = None) -> InputError:
 
 
 def _load_existing(out: Path | None) -> Any:
-    from .model import Calibration
+    from device.core.calibration import Calibration
 
     if out is None or not out.exists():
         return Calibration()
@@ -42,7 +43,7 @@ def _load_existing(out: Path | None) -> Any:
 
 def _write(args: argparse.Namespace, **sections: Any) -> None:
     """Merge ``sections`` into --out (keeping its others) and/or save to --state."""
-    from .store import CalibrationStore, atomic_write
+    from calibration.store import CalibrationStore, atomic_write
 
     out = Path(args.out) if getattr(args, "out", None) else None
     state = getattr(args, "state", None)
@@ -87,7 +88,13 @@ def _progress() -> Any:
 
 
 def cmd_fisheye(args: argparse.Namespace) -> int:
-    from .fisheye import View, board_object_points, calibrate_views, detect_board, parse_board
+    from calibration.fisheye import (
+        View,
+        board_object_points,
+        calibrate_views,
+        detect_board,
+        parse_board,
+    )
 
     try:
         board = parse_board(args.board, args.square)
@@ -114,7 +121,7 @@ def cmd_fisheye(args: argparse.Namespace) -> int:
         raise _err(f"{e}", "IMG") from e
     from dataclasses import replace
 
-    from .fisheye import field_of_view_deg
+    from calibration.fisheye import field_of_view_deg
 
     model = replace(res.model, views_rejected=tuple(res.rejected) + tuple(Path(p).name for p in missing))
     circle = _image_circle([img for _, img in images], (float(model.K[0, 2]), float(model.K[1, 2])))
@@ -130,7 +137,7 @@ def cmd_fisheye(args: argparse.Namespace) -> int:
 def _image_circle(images: list[np.ndarray], center: tuple[float, float]) -> float | None:
     """Radius of a circular fisheye's image circle from the per-pixel maximum of the photos
     (outside the circle every photo is dark), or None for a full-frame image."""
-    from .mask import find_mask
+    from calibration.mask import find_mask
 
     stack = np.max([i if i.ndim == 2 else i.max(axis=2) for i in images], axis=0).astype(np.float64)
     h, w = stack.shape
@@ -151,14 +158,14 @@ def _run(coro: Any) -> Any:
 def _camera_base(args: argparse.Namespace, camera: Any) -> Any:
     """The calibration a camera capture builds on: --out, else --state's store, else the
     camera's own ground truth (the simulator)."""
-    from .store import CalibrationStore
+    from calibration.store import CalibrationStore
 
     base = _load_existing(Path(args.out) if getattr(args, "out", None) else None)
     if not base.body() and getattr(args, "state", None):
         base = CalibrationStore(args.state).load().calibration or base
-    truth = getattr(camera, "truth_calibration", None)
-    if not base.body() and callable(truth):
-        base = truth()
+    own = camera.factory_calibration()
+    if not base.body() and own is not None:
+        base = own
     return base
 
 
@@ -170,7 +177,7 @@ def _check_source(args: argparse.Namespace, files: list[str] | str | None, what:
 
 
 def cmd_response(args: argparse.Namespace) -> int:
-    from .response import response_from_stack
+    from calibration.response import response_from_stack
 
     _check_source(args, args.images, "IMG...")
     if args.camera:
@@ -194,13 +201,13 @@ def cmd_response(args: argparse.Namespace) -> int:
 def _response_from_camera(args: argparse.Namespace) -> int:
     """Bracket a static scene through the driver; processed output -> response solve, raw
     output -> linearity check (a linear response is written only when it passes)."""
+    from calibration.capture import sweep_bracket
+    from calibration.response import linearity_check, response_from_stack
+    from device.cli.bootstrap import open_cli_camera
+    from device.core.calibration import Response
     from drivers.base import PixelFormat
 
-    from .capture import make_camera, sweep_bracket
-    from .model import Response
-    from .response import linearity_check, response_from_stack
-
-    camera = make_camera(args.camera, args.scene)
+    camera = open_cli_camera(args.camera, args.scene)
     frames, times = _run(sweep_bracket(camera, args.camera, args.exposures))
     print(f"captured {len(frames)} exposures {times[0]:.3g} .. {times[-1]:.3g} s", file=sys.stderr)
     f0 = frames[0]
@@ -224,17 +231,16 @@ def _response_from_camera(args: argparse.Namespace) -> int:
 
 
 def cmd_photometric(args: argparse.Namespace) -> int:
-    from device.imageio import read_hdr_image
+    from calibration.photometric import lux_statistics, photometric_scale
+    from device.core.imageio import read_hdr_image
     from drivers.t10a import T10A, T10AError
-
-    from .photometric import lux_statistics, photometric_scale
 
     _check_source(args, args.map, "--map")
     source = args.map or f"--camera {args.camera}"
     if args.camera:
-        from .capture import capture_map, make_camera
+        from device.cli.bootstrap import capture_map, open_cli_camera
 
-        camera = make_camera(args.camera, args.scene)
+        camera = open_cli_camera(args.camera, args.scene)
         eq = _run(capture_map(camera, args.camera, _camera_base(args, camera)))
     else:
         eq = read_hdr_image(args.map)
@@ -258,15 +264,15 @@ def cmd_photometric(args: argparse.Namespace) -> int:
 
 
 def cmd_vignetting(args: argparse.Namespace) -> int:
-    from device.imageio import read_hdr_image
-
-    from .vignetting import vignetting_from_flat_field
+    from calibration.vignetting import vignetting_from_flat_field
+    from device.core.imageio import read_hdr_image
 
     _check_source(args, args.flat, "FLAT")
     if args.camera:
-        from .capture import capture_flat_field, make_camera
+        from calibration.capture import capture_flat_field
+        from device.cli.bootstrap import open_cli_camera
 
-        camera = make_camera(args.camera, args.scene)
+        camera = open_cli_camera(args.camera, args.scene)
         existing = _camera_base(args, camera)
         print("flat field: cover the lens with the opal diffuser (or put the probe in the "
               "integrating sphere) and keep the light steady", file=sys.stderr)
@@ -295,9 +301,8 @@ def cmd_vignetting(args: argparse.Namespace) -> int:
 
 
 def cmd_mask(args: argparse.Namespace) -> int:
-    from device.imageio import read_hdr_image
-
-    from .mask import find_mask
+    from calibration.mask import find_mask
+    from device.core.imageio import read_hdr_image
 
     img = read_hdr_image(args.image)
     h, w = img.shape[:2]
@@ -311,7 +316,7 @@ def cmd_mask(args: argparse.Namespace) -> int:
 
 
 def cmd_pose(args: argparse.Namespace) -> int:
-    from .pose import pose_from_angles, pose_from_board
+    from calibration.pose import pose_from_angles, pose_from_board
 
     if args.board_image:
         return _pose_from_board_image(args, pose_from_board)
@@ -329,8 +334,8 @@ def _pose_from_board_image(args: argparse.Namespace, pose_from_board: Any) -> in
     """Pose from a board lying on the floor, seen through the calibrated fisheye."""
     from dataclasses import replace
 
-    from .fisheye import board_object_points, detect_board, orient_corners, parse_board
-    from .store import CalibrationStore
+    from calibration.fisheye import board_object_points, detect_board, orient_corners, parse_board
+    from calibration.store import CalibrationStore
 
     existing = _load_existing(Path(args.out) if args.out else None)
     if existing.fisheye is None and args.state:
@@ -360,7 +365,7 @@ def _pose_from_board_image(args: argparse.Namespace, pose_from_board: Any) -> in
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from .store import CalibrationStore
+    from calibration.store import CalibrationStore
 
     if args.state:
         res = CalibrationStore(args.state).load()
@@ -380,7 +385,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    from .store import CalibrationStore, CorruptCalibration
+    from calibration.store import CalibrationStore, CorruptCalibration
 
     store = CalibrationStore(args.state)
     try:
@@ -398,7 +403,7 @@ def cmd_history(args: argparse.Namespace) -> int:
 
 
 def cmd_rollback(args: argparse.Namespace) -> int:
-    from .store import CalibrationStore
+    from calibration.store import CalibrationStore
 
     v = CalibrationStore(args.state).rollback(args.to)
     print(f"current calibration is now version {v.number} ({v.id})", file=sys.stderr)
@@ -501,7 +506,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> int:
-    from device.cli import run_command
+    from device.core.command import run_command
 
     args = _parser().parse_args(argv)
     if args.cmd not in ("show", "history", "rollback") and not (args.out or args.state):
