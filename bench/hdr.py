@@ -1,7 +1,19 @@
-"""Fusion benchmark: speed and accuracy of :func:`device.hdr.fuse` against OpenCV's MergeDebevec.
+"""Fusion benchmark: speed and accuracy of :func:`device.hdr.fuse` against OpenCV, on a synthetic
+stack, on every real stack in ``../shared/data/exposure_stacks`` and on the simulator's truth.
 
 ``run(out_dir, quick)`` follows the ``lightprobe bench NAME`` contract (``bench/cli.py``): it writes
 ``hdr_fusion.json`` and ``hdr_fusion.png`` into ``out_dir`` and returns ``{"summary": {...}, ...}``.
+
+Real stacks (:func:`score_stack`, also what ``tests/test_hdr_real_stacks.py`` asserts): the
+response is estimated from the whole stack by each method (ours: ``lightprobe fuse``'s own;
+OpenCV's ``CalibrateDebevec`` + ``MergeDebevec`` and ``CalibrateRobertson`` +
+``MergeRobertson``), then the even and the odd exposures are fused apart and compared
+(:func:`device.hdr.quality.subset_consistency`: no ground truth needed); the whole stack's
+fusion is compared with OpenCV Debevec's (log-luminance correlation, dynamic range). Frames wider
+than ``max_width`` are downscaled (area average) first, as the tests do.
+
+Simulator (:func:`simulator_accuracy`): VGA frames of the planner's bracket fused with the
+truth response, against the simulator's noise-free radiance.
 
 Stack: 3 x VGA 8-bit frames (1/20, 1/5, 4/5 s) of a smooth log-uniform scene spanning 1e3:1, from a
 sensor with the simulator's noise (6000 e- full well, 2.5 e- read noise) and a gamma-2.2 response
@@ -102,7 +114,21 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         "opencv_median_rel_err": acc["opencv_merge_debevec"]["median_rel_err"],
         "runs": n, "numba_threads": int(numba.get_num_threads()),
     }
-    result = {"summary": summary, "accuracy": acc, "timings_ms": {"lightprobe": ours_ts, "opencv": cv_ts}}
+    import asyncio
+
+    from drivers.base import PixelFormat
+    from sim.scenarios import default_shared_data
+
+    shared = default_shared_data()
+    stacks = run_stacks(shared)
+    simulated = {f"{sc}/rgb8": asyncio.run(simulator_accuracy(sc, PixelFormat.RGB8, shared))
+                 for sc in ("rooitou_park", "lebombo")}
+    for name, r in stacks.items():
+        summary[f"{name}_even_odd_dlog"] = r["lightprobe"]["even_odd_dlog"]
+        summary[f"{name}_opencv_debevec_even_odd_dlog"] = r["opencv_debevec"]["even_odd_dlog"]
+        summary[f"{name}_opencv_robertson_even_odd_dlog"] = r["opencv_robertson"]["even_odd_dlog"]
+    result = {"summary": summary, "accuracy": acc, "stacks": stacks, "simulator": simulated,
+              "timings_ms": {"lightprobe": ours_ts, "opencv": cv_ts}}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "hdr_fusion.json").write_text(json.dumps(result, indent=1))
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
@@ -120,3 +146,144 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     fig.savefig(out_dir / "hdr_fusion.png", dpi=100)
     plt.close(fig)
     return result
+
+
+# ---- real stacks --------------------------------------------------------------------------------
+STACKS = ("piccante_room_lamp", "makehdr_room_window", "pku_campus_trees")
+
+
+def load_stack(shared_data: Path, name: str, max_width: int = 800) -> tuple[list[np.ndarray], list[float]]:
+    """RGB uint8 frames (area-downscaled to ``max_width``) and exposure times of a shared stack."""
+    import cv2
+
+    from device.hdr.cli import read_stack, read_times_file
+
+    d = Path(shared_data) / "exposure_stacks" / name
+    images = sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff"))
+    times = read_times_file(d / "exposure_times_seconds.txt", images)
+    frames = read_stack(images)
+    h, w = frames[0].shape[:2]
+    if w > max_width:
+        size = (max_width, round(h * max_width / w))
+        frames = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames]
+    return frames, times
+
+
+def _opencv(frames: list[np.ndarray], times: list[float], method: str) -> Any:
+    """A merge function of index lists with OpenCV's own response of the whole stack."""
+    import cv2
+
+    bgr = [np.ascontiguousarray(f[..., ::-1]) for f in frames]
+    t = np.asarray(times, np.float32)
+    if method == "debevec":
+        crf, merge = cv2.createCalibrateDebevec().process(bgr, t), cv2.createMergeDebevec()
+    else:
+        crf, merge = cv2.createCalibrateRobertson().process(bgr, t), cv2.createMergeRobertson()
+        crf = np.nan_to_num(crf, nan=float(np.nanmin(crf)))  # OpenCV 5 Robertson: NaN at the darkest codes
+
+    def fused(idx: list[int]) -> np.ndarray:
+        return np.asarray(merge.process([bgr[i] for i in idx], t[idx], crf), np.float64)[..., ::-1]
+
+    return fused
+
+
+def _ours(frames: list[np.ndarray], times: list[float], deghost: bool) -> Any:
+    from device.hdr.cli import estimate_response, fusion_settings
+    from device.hdr.fusion import fuse
+
+    response = estimate_response(frames, times)
+    settings = fusion_settings(response, deghost=deghost)
+
+    def fused(idx: list[int]) -> Any:
+        return fuse([frames[i] for i in idx], [times[i] for i in idx], response, settings=settings)
+
+    return fused
+
+
+def score_stack(frames: list[np.ndarray], times: list[float]) -> dict[str, dict[str, float]]:
+    """Per method: even-vs-odd consistency, dynamic range, correlation with OpenCV Debevec's
+    merge of the whole stack, seconds; ours also the deghosting's rejected share and its
+    agreement with ``--no-deghost``."""
+    from device.hdr.quality import dynamic_range, log_correlation, subset_consistency
+
+    n = len(frames)
+    even, odd, whole = list(range(0, n, 2)), list(range(1, n, 2)), list(range(n))
+    out: dict[str, dict[str, float]] = {}
+    full: dict[str, np.ndarray] = {}
+    for name, make in (("opencv_debevec", lambda: _opencv(frames, times, "debevec")),
+                       ("opencv_robertson", lambda: _opencv(frames, times, "robertson")),
+                       ("lightprobe", lambda: _ours(frames, times, True)),
+                       ("lightprobe_no_deghost", lambda: _ours(frames, times, False))):
+        t0 = time.perf_counter()
+        fused = make()
+        a, e, o = fused(whole), fused(even), fused(odd)
+        row: dict[str, float] = {}
+        if not isinstance(a, np.ndarray):  # a FusionResult
+            row["deghost_rejected_fraction"] = a.rejected_fraction
+            a, e, o = a.radiance, e.radiance, o.radiance
+        row.update(even_odd_dlog=subset_consistency(e, o), dynamic_range=dynamic_range(a),
+                   seconds=time.perf_counter() - t0)
+        full[name] = a
+        out[name] = row
+    for name, row in out.items():
+        row["log_correlation_vs_opencv_debevec"] = log_correlation(full[name], full["opencv_debevec"])
+    out["lightprobe"]["vs_no_deghost_dlog"] = subset_consistency(full["lightprobe"], full["lightprobe_no_deghost"])
+    return out
+
+
+# ---- the simulator's truth ----------------------------------------------------------------------
+async def simulator_accuracy(scene: str, fmt: Any, shared_data: Path | None = None, seed: int = 11) -> dict[str, Any]:
+    """VGA frames of ``scene`` in pixel format ``fmt``: a metering sweep, then the planner's
+    bracket, fused with the truth response; fused x photometric scale / vignetting against the
+    noise-free sensor-plane radiance over the clean field of view, on pixels not saturated in the
+    shortest exposure."""
+    from device.burst import BracketPlanner, capture_burst, exposure_rates, field_of_view_mask
+    from device.hdr import fuse_frames
+    from sim.camera import SimCamera
+
+    cam = SimCamera(scene, seed=seed, shared_data=shared_data)
+    async with cam:
+        mode = next(m for m in cam.capabilities.modes if m.format is fmt and m.width == 640)
+        await cam.set_mode(mode)
+        cal = cam.truth_calibration()
+        if cal.response is None or cal.fisheye is None or cal.vignetting is None or cal.photometric is None:
+            raise ValueError("the simulator's truth calibration is incomplete")
+        full_scale = 1.0 if fmt.is_raw else cal.response.inverse[-1]
+        fov = field_of_view_mask(cal.fisheye)
+        planner = BracketPlanner(cam.capabilities.exposure_range)
+        sweep = await capture_burst(cam, planner.plan(None), gain=1.0, timeout=60)
+        first = fuse_frames(sweep, cal.response)
+        exposures = planner.plan(exposure_rates(first.radiance, full_scale), saturated=first.saturated,
+                                 mask=fov)
+        frames = await capture_burst(cam, exposures, gain=1.0, timeout=60)
+        res = fuse_frames(frames, cal.response)
+        truth = cam.render_radiance_image()
+    h, w = truth.shape[:2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    vig = cal.vignetting.factor(u, v)[..., None]
+    est = res.radiance.astype(np.float64) * cal.photometric.scale / vig
+    shortest = frames[int(np.argmin([f.meta.exposure_s for f in frames]))]
+    unsat = (shortest.data < shortest.white_level).all(axis=-1)
+    sel = fov & unsat
+    rel = (np.abs(est - truth) / np.maximum(truth, 1e-30))[sel]
+    lum = truth.max(axis=-1)[sel]
+    return {
+        "scene": scene, "format": fmt.value, "exposures_s": [float(t) for t in exposures],
+        "n_exposures": len(exposures), "median_rel_err": float(np.median(rel)),
+        "p99_rel_err": float(np.percentile(rel, 99)), "pixels": int(sel.sum()),
+        "pixels_saturated_in_shortest": int((fov & ~unsat).sum()),
+        "truth_dynamic_range": float(lum.max() / max(lum.min(), 1e-30)),
+        "flagged_saturated": int(res.saturated[fov].sum()), "flagged_invalid": int(res.invalid[fov].sum()),
+        "finite": bool(np.isfinite(res.radiance).all()),
+    }
+
+
+def run_stacks(shared_data: Path) -> dict[str, Any]:
+    """:func:`score_stack` of every stack in ``shared_data/exposure_stacks`` (with a times file)."""
+    root = Path(shared_data) / "exposure_stacks"
+    names = sorted(d.name for d in root.iterdir() if (d / "exposure_times_seconds.txt").is_file())
+    out = {}
+    for name in names:
+        frames, times = load_stack(shared_data, name)
+        out[name] = {"frames": len(frames), "size": list(frames[0].shape[1::-1]), **score_stack(frames, times)}
+    return out

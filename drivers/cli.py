@@ -33,9 +33,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _list(as_json: bool) -> int:
-    from drivers.discovery import list_cameras
-
-    from drivers.discovery import camera_plugins
+    from drivers.discovery import camera_plugins, list_cameras
 
     cams = list_cameras()
     plugins = set(camera_plugins())

@@ -164,3 +164,53 @@ def test_console_script_exit_code(small_stack: list[Path], tmp_path: Path) -> No
                        capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "o.exr").is_file()
+
+
+def test_fuse_reports_what_it_did_and_a_bad_stack(stack: tuple[list[Path], list[float], Path],
+                                                  shared_data: Path, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    images, _, times_file = stack
+    assert main(["fuse", *map(str, images), "--times-file", str(times_file), "--out", str(tmp_path / "a.exr")]) == 0
+    out = capsys.readouterr().out
+    assert "response: debevec (estimated from the stack); noise model: measured scatter per code" in out
+    assert "of the usable samples rejected" in out
+    assert "warning" not in out
+    _, header = read_exr(tmp_path / "a.exr")
+    assert float(header["deghost_rejected"]) < 0.05
+    # The pku grove's four longest exposures are white everywhere: the report says so
+    d = shared_data / "exposure_stacks" / "pku_campus_trees"
+    white = [str(d / f"Ldr0{i}.jpg") for i in range(1, 5)]
+    assert main(["fuse", *white, "--times", "1/2", "1/4", "1/8", "1/15", "--out", str(tmp_path / "b.exr")]) == 0
+    out = capsys.readouterr().out
+    assert "warning: over 5% of the pixels are saturated even in the shortest exposure" in out
+
+
+def test_deghosting_with_a_measured_response_drops_a_moving_lamp_only(
+        stack: tuple[list[Path], list[float], Path]) -> None:
+    """A patch pasted into one exposure of the real (static) stack, bright (a lamp on during that
+    exposure only) or dark (a lamp off, a passer-by): with the stack's measured scatter the
+    deghosting drops exactly that patch's samples and keeps the rest."""
+    from device.hdr.cli import fuse_report, read_stack
+    from device.hdr.fusion import fuse
+
+    images, times, _ = stack
+    frames = read_stack(images)
+    response = estimate_response(frames, times)
+    assert response.log_sigma is not None
+    settings = FusionSettings(deghost=True, ghost_rel_tol=0.05)
+    clean = fuse(frames, times, response, settings=settings).radiance
+    patch = (slice(20, 60), slice(20, 60))
+    outside = np.ones(clean.shape[:2], bool)
+    outside[patch] = False
+    for k, code in ((3, 200), (1, 5)):  # 1/30 s shows the wall at ~27, 0.5 s at ~189
+        ghosted = [f.copy() for f in frames]
+        ghosted[k][patch] = code
+        res = fuse(ghosted, times, response, settings=settings)
+        plain = fuse(ghosted, times, response, settings=FusionSettings(deghost=False)).radiance
+        err = np.median(np.abs(res.radiance[patch] / clean[patch] - 1))
+        err_plain = np.median(np.abs(plain[patch] / clean[patch] - 1))
+        assert err < 0.02, (k, code, err)  # the patch is gone
+        assert err_plain > 2 * err, (k, code, err_plain)  # without deghosting it is not
+        assert res.rejected[patch].mean() >= 0.9  # its samples were the ones rejected
+        assert res.rejected[outside].mean() < 0.05  # the static rest keeps its samples
+        assert fuse_report(res, response, "test")["deghost_rejected_fraction"] < 0.05

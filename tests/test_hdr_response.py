@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.response import sample_pixels, solve_debevec
+from calibration.response import pair_bins, solve_debevec
 from device.core.errors import InputError
 
 
@@ -40,7 +40,9 @@ def test_deterministic_and_works_on_tiny_images() -> None:
     b = solve_debevec(small, times)
     np.testing.assert_array_equal(a.inverse, b.inverse)
     assert np.isfinite(a.inverse).all()
-    assert sample_pixels(small, 0).size <= 42
+    assert a.log_sigma is not None
+    assert np.isfinite(a.log_sigma).all()
+    assert pair_bins(small, times, 0).count.sum() <= 42 * (len(times) - 1)  # 42 pixels, 4 pairs
 
 
 def test_needs_two_exposures_and_positive_times() -> None:

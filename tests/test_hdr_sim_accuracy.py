@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from bench.hdr import simulator_accuracy
 from device.burst import BracketPlanner, capture_burst, exposure_rates, field_of_view_mask
 from device.hdr import fuse_frames
 from drivers.base import PixelFormat
@@ -29,43 +30,7 @@ _RESULTS: dict[str, dict[str, Any]] = {}
 
 
 async def _measure(scene: str, fmt: PixelFormat, shared_data: Path) -> dict[str, Any]:
-    cam = SimCamera(scene, seed=11, shared_data=shared_data)
-    async with cam:
-        mode = next(m for m in cam.capabilities.modes if m.format is fmt and m.width == 640)
-        await cam.set_mode(mode)
-        cal = cam.truth_calibration()
-        assert cal.response is not None
-        assert cal.fisheye is not None
-        assert cal.vignetting is not None
-        assert cal.photometric is not None
-        full_scale = 1.0 if fmt.is_raw else cal.response.inverse[-1]
-        fov = field_of_view_mask(cal.fisheye)
-        planner = BracketPlanner(cam.capabilities.exposure_range)
-        sweep = await capture_burst(cam, planner.plan(None), gain=1.0, timeout=60)
-        first = fuse_frames(sweep, cal.response)
-        exposures = planner.plan(exposure_rates(first.radiance, full_scale), saturated=first.saturated,
-                                 mask=fov)
-        frames = await capture_burst(cam, exposures, gain=1.0, timeout=60)
-        res = fuse_frames(frames, cal.response)
-        truth = cam.render_radiance_image()
-    h, w = truth.shape[:2]
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    vig = cal.vignetting.factor(u, v)[..., None]
-    est = res.radiance.astype(np.float64) * cal.photometric.scale / vig
-    shortest = frames[int(np.argmin([f.meta.exposure_s for f in frames]))]
-    unsat = (shortest.data < shortest.white_level).all(axis=-1)
-    sel = fov & unsat
-    rel = (np.abs(est - truth) / np.maximum(truth, 1e-30))[sel]
-    lum = truth.max(axis=-1)[sel]
-    return {
-        "scene": scene, "format": fmt.value, "exposures_s": [float(t) for t in exposures],
-        "n_exposures": len(exposures), "median_rel_err": float(np.median(rel)),
-        "p99_rel_err": float(np.percentile(rel, 99)), "pixels": int(sel.sum()),
-        "pixels_saturated_in_shortest": int((fov & ~unsat).sum()),
-        "truth_dynamic_range": float(lum.max() / max(lum.min(), 1e-30)),
-        "flagged_saturated": int(res.saturated[fov].sum()), "flagged_invalid": int(res.invalid[fov].sum()),
-        "finite": bool(np.isfinite(res.radiance).all()),
-    }
+    return await simulator_accuracy(scene, fmt, shared_data)
 
 
 @pytest.fixture(scope="module")

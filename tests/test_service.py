@@ -298,7 +298,7 @@ async def test_slow_reader_skips_frames(tmp_path: Path) -> None:
         raw = await asyncio.to_thread(_raw_ws, s.port)
         try:
             first = json.loads(await asyncio.to_thread(_read_ws_text, raw))["frame"]
-            while (await _wait_frames(c, s.api, 1))["frame"] < first + 40:  # the client stalls
+            while (await _wait_frames(c, s.api, 1))["frame"] < first + 40:  # noqa: ASYNC110 - the client stalls
                 await asyncio.sleep(0.2)
             frames = [first]
             while len(frames) < 60 and (len(frames) < 2 or np.diff(frames).max() <= 1):

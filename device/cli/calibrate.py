@@ -222,8 +222,7 @@ def _response_from_camera(args: argparse.Namespace) -> int:
         _write(args, response=Response.linear(f0.format.bit_depth, f0.black_level, f0.white_level))
         return 0
     try:
-        # A whole frame per exposure: more samples than for a few photos (less noise in g)
-        resp = response_from_stack([f.data for f in frames], times, method=args.method, samples=1500)
+        resp = response_from_stack([f.data for f in frames], times, method=args.method)
     except ValueError as e:
         raise _err(f"--camera {args.camera}: {e}", "--camera") from e
     _write(args, response=resp)

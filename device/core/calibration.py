@@ -168,12 +168,19 @@ class Response:
     ``z`` in channel ``c`` (Debevec-Malik's exp(g(z))), strictly increasing. For RAW output the
     response is linear after black-level subtraction: ``model == "linear"`` and ``inverse`` is
     ``(z - black) / (white - black)`` clipped at 0.
+
+    ``log_sigma`` (levels, 3), optional: how far a single sample at code ``z`` scatters in log
+    exposure, as measured on the calibration bracket (sensor and JPEG noise, quantisation and the
+    response's own misfit together). When present the HDR merge weights and the deghosting use it
+    instead of the generic sensor noise model (:mod:`device.hdr.fusion`); a truth or linear
+    response has none.
     """
 
     model: str  # "table" (processed output) or "linear" (raw)
     bits: int
     inverse: np.ndarray  # (2**bits, 3) float64
     method: str = ""  # how it was measured: "truth", "debevec", "robertson"
+    log_sigma: np.ndarray | None = None  # (2**bits, 3) float64, log-exposure scatter per code
 
     @classmethod
     def linear(cls, bits: int, black_level: float = 0.0, white_level: float | None = None) -> Response:
@@ -184,13 +191,18 @@ class Response:
 
     def normalised(self) -> Response:
         """The same response scaled so the largest channel's full-scale code maps to 1 (the
-        exposure that saturates), as :meth:`linear` is: the convention every solver returns."""
+        exposure that saturates), as :meth:`linear` is: the convention every solver returns.
+        ``log_sigma`` is scale-free and kept."""
         top = float(np.max(self.inverse[-1]))
-        return Response(self.model, self.bits, self.inverse / (top if top > 0 else 1.0), self.method)
+        return Response(self.model, self.bits, self.inverse / (top if top > 0 else 1.0), self.method,
+                        self.log_sigma)
 
     def to_json(self) -> dict[str, Any]:
-        return {"model": self.model, "bits": self.bits, "method": self.method,
-                "inverse": np.round(self.inverse.T, 12).tolist()}
+        out: dict[str, Any] = {"model": self.model, "bits": self.bits, "method": self.method,
+                               "inverse": np.round(self.inverse.T, 12).tolist()}
+        if self.log_sigma is not None:
+            out["log_sigma"] = np.round(self.log_sigma.T, 6).tolist()
+        return out
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Response:
@@ -200,7 +212,12 @@ class Response:
         inv = _arr(d.get("inverse"), (3, 1 << bits), "response.inverse").T.copy()
         if np.any(np.diff(inv, axis=0) < 0):
             raise InputError("response.inverse must be non-decreasing", param="response.inverse")
-        return cls(str(d.get("model", "table")), bits, inv, str(d.get("method", "")))
+        sig = None
+        if d.get("log_sigma") is not None:
+            sig = _arr(d.get("log_sigma"), (3, 1 << bits), "response.log_sigma").T.copy()
+            if np.any(sig < 0):
+                raise InputError("response.log_sigma must be non-negative", param="response.log_sigma")
+        return cls(str(d.get("model", "table")), bits, inv, str(d.get("method", "")), sig)
 
 
 @dataclass(frozen=True)

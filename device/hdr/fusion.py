@@ -10,19 +10,28 @@ The fused value is the weighted mean ``X = sum_i w_i X_i / sum_i w_i`` with
 
 ``h`` a *broad hat* that is zero near black (clipping at 0 biases the estimate) and near
 saturation (clipping at full scale biases it, Reinhard et al. 2010 sec. 4.7 "broad hat"), and
-``Var[E]`` the sensor noise (shot + read, :class:`NoiseModel`) plus the quantisation of the
-response (``(dE/dz)^2 / 12``): the inverse-variance weights of Granados et al. / Hasinoff et al.,
-which make long exposures weigh more for the same pixel value.
+``Var[E]`` the noise of a sample: for a response measured on a bracket, the scatter it showed
+there per code (``Response.log_sigma``: ``Var[E] = (E sigma)^2``, the real camera's noise, JPEG
+and quantisation included, and the response's own error); otherwise the sensor noise model (shot
++ read, :class:`NoiseModel`) plus the quantisation of the response (``(dE/dz)^2 / 12``): the
+inverse-variance weights of Granados et al. / Hasinoff et al., which make long exposures weigh
+more for the same pixel value.
 
 Everything that depends only on the pixel value is a look-up table with one row per level
 (``(F, L + 1, 3)`` float32, row ``L`` = "invalid sample" for NaN/Inf from float drivers), so the
 merge is a handful of table reads per pixel (:func:`_merge_kernel`, numba, parallel over pixels).
 
 Ghosts (lights that move between exposures). Per pixel a *reference* frame is chosen: the shortest
-exposure in which no channel is saturated and one has weight. Any other frame whose estimate
+exposure in which no channel is saturated and one has weight; when that sample is poorly exposed
+(relative noise above ``ref_max_rel_sigma``, a nearly black pixel of the shortest frame) the most
+precise well-exposed sample (largest weight) stands in. Any other frame whose estimate
 disagrees with the reference by more than ``k sigma + rel_tol X_ref`` (sigma: the two samples'
 combined noise) in any channel is dropped at that pixel, so a moving lamp appears once, where the
 reference saw it, never as a double or a smear (Granados et al. 2013 use the same consistency test).
+The threshold is only as good as sigma: with a generic sensor model on real JPEG photographs
+(whose noise, tone curve and response error it does not describe) it rejected most samples of a
+static scene; with the bracket's measured scatter a static scene keeps its samples (the default
+and ``deghost=False`` agree) while a moving lamp still stands out by many sigma.
 
 Degenerate pixels (never NaN or Inf in the output):
 
@@ -96,7 +105,9 @@ class FusionSettings:
     above ``sat_frac`` of the pixel range (JPEG and demosaicing smear values near the ends);
     ``ghost_k`` / ``ghost_rel_tol``: a sample is a ghost when it differs from the reference by more
     than ``ghost_k`` sigma plus ``ghost_rel_tol`` x reference (the relative part absorbs response
-    calibration error); ``deghost=False`` keeps every sample.
+    calibration error); ``deghost=False`` keeps every sample; a reference sample noisier than
+    ``ref_max_rel_sigma`` (relative) hands over to the most precise well-exposed sample, so a
+    pixel is never judged against a nearly black sample.
     """
 
     black_frac: float = 0.01
@@ -104,6 +115,7 @@ class FusionSettings:
     deghost: bool = True
     ghost_k: float = 5.0
     ghost_rel_tol: float = 0.05
+    ref_max_rel_sigma: float = 0.25
     noise: NoiseModel = NoiseModel()
 
 
@@ -114,12 +126,24 @@ class FusionResult:
     ``saturated``: (H, W) bool, some channel saturated in every exposure (value = lower bound).
     ``invalid``: (H, W) bool, some channel had no usable sample (value = best guess).
     ``exposures``: the (exposure_s, gain) of each frame, in input order.
+    ``rejected``: (H, W) uint8, samples (frames) the deghosting dropped at each pixel;
+    ``usable``: how many samples (pixel x frame) had weight at all, so ``rejected.sum() /
+    usable`` is the fraction the deghosting threw away.
     """
 
     radiance: np.ndarray
     saturated: np.ndarray
     invalid: np.ndarray
     exposures: tuple[tuple[float, float], ...]
+    rejected: np.ndarray | None = None
+    usable: int = 0
+
+    @property
+    def rejected_fraction(self) -> float:
+        """Share of the usable samples the deghosting rejected (0 without deghosting)."""
+        if self.rejected is None or self.usable <= 0:
+            return 0.0
+        return float(self.rejected.sum(dtype=np.int64)) / self.usable
 
 
 # ---- Look-up tables -----------------------------------------------------------------------------
@@ -156,7 +180,8 @@ def _hat(levels: int, black: float, sat: float, settings: FusionSettings) -> np.
 
 
 def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: float, sat: float,
-               settings: FusionSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               settings: FusionSettings, log_sigma: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-level tables of one frame: value, weight, sigma (each (L + 1, 3) float64) and the
     saturation flag (L + 1, 3) bool (levels at or above ``black + sat_frac (sat - black)``);
     row L is the "invalid sample" row (weight 0).
@@ -164,7 +189,11 @@ def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
     value   X(z) = E(z) / (t g)                                  (Debevec-Malik eq. 6)
     weight  w(z) = h(z) (t g)^2 E_fs^2 / Var[E(z)]              (Granados et al. 2010 eq. 11)
     sigma   sd(z) = sqrt(Var[E(z)]) / (t g)
-    with Var[E] = E_fs^2 (e g / FW + (r g / FW)^2) + (dE/dz)^2 / 12, e = E / E_fs.
+    with, from the sensor noise model, Var[E] = E_fs^2 (e g / FW + (r g / FW)^2) + (dE/dz)^2 / 12,
+    e = E / E_fs; or, when the response carries the scatter it was measured with
+    (``log_sigma``, :func:`calibration.response.code_scatter`), Var[E] = (E(z) sigma(z))^2: that
+    scatter already holds the camera's real noise (JPEG included), quantisation and the
+    response's own error, which a generic sensor model does not know.
     """
     inv = np.asarray(inverse, dtype=np.float64)
     levels = inv.shape[0]
@@ -172,11 +201,14 @@ def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
     isat = int(min(max(np.ceil(sat), 1), levels - 1))
     e_fs = np.maximum(inv[isat], 1e-300)  # Exposure at full scale, per channel
     e = np.clip(inv / e_fs, 0.0, 1.0)
-    nm = settings.noise
-    fw = max(nm.full_well_e, 1.0)
-    var_sensor = (e * gain / fw + (nm.read_noise_e * gain / fw) ** 2) * e_fs**2
-    slope = np.gradient(inv, axis=0)  # dE/dz, quantisation of the response
-    var = var_sensor + slope**2 / 12.0 + 1e-30 * e_fs**2
+    if log_sigma is not None:  # the bracket's own scatter per code
+        var = (inv * np.asarray(log_sigma, np.float64)) ** 2 + 1e-30 * e_fs**2
+    else:
+        nm = settings.noise
+        fw = max(nm.full_well_e, 1.0)
+        var_sensor = (e * gain / fw + (nm.read_noise_e * gain / fw) ** 2) * e_fs**2
+        slope = np.gradient(inv, axis=0)  # dE/dz, quantisation of the response
+        var = var_sensor + slope**2 / 12.0 + 1e-30 * e_fs**2
     hat = _hat(levels, black, sat, settings)[:, None]
     # Weights in full-scale units (Var / E_fs^2): the same factor for every frame of a response,
     # so float32 keeps them whatever the response's scale
@@ -200,16 +232,18 @@ _CACHE_LOCK = threading.Lock()  # fuse() runs in worker threads (asyncio.to_thre
 
 
 def packed_lut(inverse: np.ndarray, exposure_s: float, gain: float, *, black: float, sat: float,
-               settings: FusionSettings) -> np.ndarray:
+               settings: FusionSettings, log_sigma: np.ndarray | None = None) -> np.ndarray:
     """The kernel's table for one frame: (L + 1, 3, 4) float32 [value, weight, variance, saturated]
     (:func:`build_luts`), memoised on (response, exposure, gain, levels, settings): a live probe
     repeats the same few exposures, so the tables are built once."""
     inv = np.ascontiguousarray(inverse, dtype=np.float64)
-    key = (hash(inv.tobytes()), inv.shape, float(exposure_s), float(gain), float(black), float(sat), settings)
+    sig = None if log_sigma is None else np.ascontiguousarray(log_sigma, dtype=np.float64)
+    key = (hash(inv.tobytes()), inv.shape, None if sig is None else hash(sig.tobytes()), float(exposure_s),
+           float(gain), float(black), float(sat), settings)
     hit = _LUT_CACHE.get(key)
     if hit is not None:
         return hit
-    val, w, sd, satf = build_luts(inv, exposure_s, gain, black=black, sat=sat, settings=settings)
+    val, w, sd, satf = build_luts(inv, exposure_s, gain, black=black, sat=sat, settings=settings, log_sigma=sig)
     fmax = float(np.finfo(np.float32).max) / 16
     lut = np.stack([val, w, sd**2, satf.astype(np.float64)], axis=-1)
     lut = np.ascontiguousarray(np.clip(np.nan_to_num(lut, nan=0.0, posinf=fmax), 0, fmax), np.float32)
@@ -223,20 +257,29 @@ def packed_lut(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
 
 # ---- The merge ----------------------------------------------------------------------------------
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _merge_kernel(z, lut, lower, deghost, k2, rel, out, sat_mask, inv_mask):  # type: ignore[no-untyped-def]
+def _merge_kernel(z, lut, lower, deghost, k2, rel, ref_rel2, out, sat_mask, inv_mask, usable, rejected):  # type: ignore[no-untyped-def]
     """z: (F, N, 3) LUT rows (frames sorted by t g ascending); lut: (F, L + 1, 3, 4) float32 with
     [value, weight, variance, saturated]; lower: (3,) the lower bound for all-saturated channels."""
     nf, npx, _ = z.shape
     for p in numba.prange(npx):
-        # Choose the reference: shortest frame with no channel saturated and some weight
+        # Choose the reference: the shortest frame with no channel saturated and some weight. If
+        # that sample is poorly exposed (relative sigma above ref_rel in a weighted channel) it
+        # cannot judge the others: then the most precise well-exposed sample (largest weight)
+        # stands in (none: no test at this pixel)
         ref = -1
+        poor = False
         for i in range(nf):
             a0, a1, a2 = lut[i, z[i, p, 0], 0], lut[i, z[i, p, 1], 1], lut[i, z[i, p, 2], 2]
             if a0[3] + a1[3] + a2[3] > 0:
                 continue
             if a0[1] + a1[1] + a2[1] > 0:
                 ref = i
+                poor = ((a0[1] > 0) & (a0[2] > ref_rel2 * a0[0] * a0[0])) | \
+                       ((a1[1] > 0) & (a1[2] > ref_rel2 * a1[0] * a1[0])) | \
+                       ((a2[1] > 0) & (a2[2] > ref_rel2 * a2[0] * a2[0]))
                 break
+        if deghost and poor:
+            ref = _best_reference(lut, z, p, ref_rel2)
         rv0 = rv1 = rv2 = 0.0
         rs0 = rs1 = rs2 = 0.0
         rw0 = rw1 = rw2 = 0.0
@@ -252,6 +295,7 @@ def _merge_kernel(z, lut, lower, deghost, k2, rel, out, sat_mask, inv_mask):  # 
             w0, w1, w2 = a0[1], a1[1], a2[1]
             if w0 + w1 + w2 <= 0:
                 continue
+            usable[p] += 1
             if deghost and ref >= 0 and i != ref:
                 # Consistency with the reference: |X_i - X_ref| <= k sigma + rel X_ref (Granados 2013)
                 e0 = abs(a0[0] - rv0) - rel * rv0
@@ -263,6 +307,7 @@ def _merge_kernel(z, lut, lower, deghost, k2, rel, out, sat_mask, inv_mask):  # 
                 g2 = (w2 * rw2 > 0) & (e2 > 0) & (e2 * e2 > k2 * (a2[2] + rs2))
                 ghost = g0 | g1 | g2
                 if ghost:
+                    rejected[p] += 1
                     continue
             # Weighted mean of the estimates X_i = E(z_i) / (t_i g_i)            (Debevec-Malik eq. 6)
             n0 += w0 * a0[0]
@@ -278,6 +323,25 @@ def _merge_kernel(z, lut, lower, deghost, k2, rel, out, sat_mask, inv_mask):  # 
                 out[p, c] = num / den
             else:
                 _degenerate(z, lut, lower, p, c, ref, out, sat_mask, inv_mask)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _best_reference(lut, z, p, ref_rel2):  # type: ignore[no-untyped-def]
+    """The well-exposed sample (no channel saturated, relative variance <= ref_rel2 in every
+    weighted channel) with the largest weight, the most precise estimate of the pixel; -1 when
+    none is well exposed."""
+    best, best_w = -1, 0.0
+    for i in range(z.shape[0]):
+        a0, a1, a2 = lut[i, z[i, p, 0], 0], lut[i, z[i, p, 1], 1], lut[i, z[i, p, 2], 2]
+        w = a0[1] + a1[1] + a2[1]
+        if w <= best_w or a0[3] + a1[3] + a2[3] > 0:
+            continue
+        if ((a0[1] > 0) & (a0[2] > ref_rel2 * a0[0] * a0[0])) | \
+           ((a1[1] > 0) & (a1[2] > ref_rel2 * a1[0] * a1[0])) | \
+           ((a2[1] > 0) & (a2[2] > ref_rel2 * a2[0] * a2[0])):
+            continue
+        best, best_w = i, w
+    return best
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -351,8 +415,10 @@ def _check_stack(frames: Sequence[np.ndarray], exposures: Sequence[float],
 
 def fuse_tables(frames: Sequence[np.ndarray], exposures: Sequence[float], inverses: Sequence[np.ndarray],
                 blacks: Sequence[float], sats: Sequence[float], gains: Sequence[float] | None = None,
-                settings: FusionSettings | None = None) -> FusionResult:
-    """Merge frames given each frame's inverse-response table, black level and saturation level.
+                settings: FusionSettings | None = None,
+                log_sigma: np.ndarray | None = None) -> FusionResult:
+    """Merge frames given each frame's inverse-response table, black level and saturation level
+    (and the response's measured scatter per code, ``log_sigma``, when it has one).
 
     The common core of :func:`fuse` (processed) and :func:`fuse_raw` (linear). Raises
     :class:`InputError` for an empty stack, mismatched shapes or counts, non-positive times/gains.
@@ -366,18 +432,22 @@ def fuse_tables(frames: Sequence[np.ndarray], exposures: Sequence[float], invers
     z = np.empty((len(order), h * wd, 3), np.result_type(*[a.dtype for a in idx]))
     for j, a in enumerate(idx):
         z[j] = a.reshape(h * wd, 3)
+    sig = None if log_sigma is None else _pad(log_sigma, levels)
     lut = np.stack([packed_lut(_pad(inverses[i], levels), tl[i], gl[i], black=blacks[i], sat=sats[i],
-                               settings=st) for i in order])
+                               settings=st, log_sigma=sig) for i in order])
     # Lower bound for channels saturated everywhere: E(z_sat) / (t g) of the shortest frame
     lower = np.array([lut[0, int(np.argmax(lut[0, :levels, c, 3] > 0)), c, 0] for c in range(3)],
                      np.float32)
     out = np.empty((h * wd, 3), np.float32)
     smask = np.zeros(h * wd, np.bool_)
     imask = np.zeros(h * wd, np.bool_)
+    usable = np.zeros(h * wd, np.uint8)
+    rejected = np.zeros(h * wd, np.uint8)
     _merge_kernel(z, lut, lower, st.deghost, float(st.ghost_k) ** 2, float(st.ghost_rel_tol),
-                  out, smask, imask)
+                  float(st.ref_max_rel_sigma) ** 2, out, smask, imask, usable, rejected)
     return FusionResult(out.reshape(h, wd, 3), smask.reshape(h, wd), imask.reshape(h, wd),
-                        tuple(zip(tl, gl, strict=True)))
+                        tuple(zip(tl, gl, strict=True)), rejected.reshape(h, wd),
+                        int(usable.sum(dtype=np.int64)))
 
 
 def _pad(inverse: np.ndarray, levels: int) -> np.ndarray:
@@ -394,7 +464,8 @@ def fuse(frames: Sequence[np.ndarray], exposures: Sequence[float], response: Res
     inv = _sanitized(response.inverse)
     n = len(frames)
     top = float(inv.shape[0] - 1)
-    return fuse_tables(frames, exposures, [inv] * n, [0.0] * n, [top] * n, gains, settings)
+    return fuse_tables(frames, exposures, [inv] * n, [0.0] * n, [top] * n, gains, settings,
+                       response.log_sigma)
 
 
 def fuse_raw(frames: Sequence[np.ndarray], exposures: Sequence[float], *, bits: int,

@@ -1,0 +1,63 @@
+"""HDR on real photographs (issue 13): every stack in ``../shared/data/exposure_stacks``, read
+from there, scored against OpenCV's Debevec and Robertson in the same run (``bench.hdr``).
+
+The metric needs no ground truth: the even and the odd exposures of a static stack fused apart
+must give the same radiance (median |d log L| after one global scale). Our fusion estimates its
+own response from the whole stack, as ``lightprobe fuse`` does. Figures go to
+``test-artifacts/hdr_real_stacks.json`` and BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bench.hdr import run_stacks
+
+pytestmark = pytest.mark.slow
+TRIPOD = ("piccante_room_lamp", "makehdr_room_window")  # static, registered to <= 1 px
+
+
+@pytest.fixture(scope="module")
+def scores(shared_data: Path, artifacts_dir: Path) -> dict[str, Any]:
+    r = run_stacks(shared_data)
+    (artifacts_dir / "hdr_real_stacks.json").write_text(json.dumps(r, indent=1))
+    return r
+
+
+def test_every_shared_stack_is_scored(scores: dict[str, Any], shared_data: Path) -> None:
+    on_disk = {d.name for d in (shared_data / "exposure_stacks").iterdir() if d.is_dir()}
+    assert set(scores) == on_disk
+    assert len(scores) >= 3
+
+
+def test_subset_consistency_beats_opencv(scores: dict[str, Any]) -> None:
+    for name, s in scores.items():
+        ours, deb, rob = (s[k]["even_odd_dlog"] for k in ("lightprobe", "opencv_debevec", "opencv_robertson"))
+        print(f"{name}: even/odd |dlog| ours {ours:.4f}, OpenCV Debevec {deb:.4f}, Robertson {rob:.4f}")
+        assert ours <= rob, name
+        assert ours <= deb, name
+        # 0.8 x OpenCV Debevec's where OpenCV is far from the noise floor; on the 1-stop Fuji
+        # stack OpenCV already sits at it (its subsets disagree by 1.1%) and we reach 0.92 x
+        assert ours <= (0.95 if name == "makehdr_room_window" else 0.8) * deb, name
+
+
+def test_agrees_with_opencv_and_keeps_the_dynamic_range(scores: dict[str, Any]) -> None:
+    for name, s in scores.items():
+        ours = s["lightprobe"]
+        assert ours["dynamic_range"] >= 0.5 * s["opencv_debevec"]["dynamic_range"], name
+        if name in TRIPOD:
+            assert ours["log_correlation_vs_opencv_debevec"] >= 0.98, name
+        else:  # a misregistered phone stack: agree with OpenCV Debevec as well as its Robertson does
+            assert ours["log_correlation_vs_opencv_debevec"] >= s["opencv_robertson"]["log_correlation_vs_opencv_debevec"]
+
+
+def test_deghosting_never_collapses_a_static_stack(scores: dict[str, Any]) -> None:
+    for name, s in scores.items():
+        ours = s["lightprobe"]
+        assert ours["vs_no_deghost_dlog"] <= 0.01, name  # default and --no-deghost agree
+        assert ours["deghost_rejected_fraction"] < 0.05, name
+        assert abs(ours["even_odd_dlog"] - s["lightprobe_no_deghost"]["even_odd_dlog"]) <= 0.005, name
