@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test,relight]'
 	$(BIN)/python -m compileall -q device drivers sim calibration hostlink bench  # bytecode up front: faster service start
+	$(BIN)/lightprobe warm-kernels  # compile every numba kernel the service runs, once, at install
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -31,6 +32,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/lightprobe bench pipeline --out bench/results
 	$(BIN)/lightprobe bench samplers --out bench/results
+	$(BIN)/lightprobe bench live --out bench/results
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

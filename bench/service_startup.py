@@ -86,19 +86,8 @@ def exec_to_lights(state: Path, scene: str = "lebombo", *, fps: float = 10.0, li
     """One start of ``lightprobe serve``: seconds from exec to the API and to the first lights."""
     cfg = _write_config(state, fps, light_count)
     t0 = time.monotonic()
-    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--scene", scene,
-                          "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
-                         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
-                         stderr=subprocess.DEVNULL, text=True)
+    p, url = _start_serve("sim", scene, state, cfg, {}, subprocess.DEVNULL)
     try:
-        assert p.stdout is not None
-        url = None
-        for line in p.stdout:
-            if "dashboard http://" in line:
-                url = line.split("dashboard ", 1)[1].strip().rstrip("/")
-                break
-        if url is None:
-            raise RuntimeError(f"service exited with {p.wait()}")
         t_print = time.monotonic()
         t_api, t_lights, first = asyncio.run(_first_lights(url, timeout))
         cpu = _cpu_s(p.pid)
@@ -220,3 +209,99 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+# ---- live figures (lightprobe bench live, part 2) ---------------------------------------------
+def _rss_mb(pid: int) -> tuple[float, float]:
+    """(VmRSS, VmHWM) of a process in MB."""
+    vals = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        k, _, v = line.partition(":")
+        if k in ("VmRSS", "VmHWM"):
+            vals[k] = int(v.split()[0]) / 1024
+    return vals.get("VmRSS", float("nan")), vals.get("VmHWM", float("nan"))
+
+
+async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
+    """Light sets on the WebSocket for ``seconds`` (after the first), the first q2tree call."""
+    import aiohttp
+
+    out: dict[str, Any] = {}
+    async with aiohttp.ClientSession() as session, session.ws_connect(url + "/api/v1/stream") as ws:
+        await ws.receive(timeout=120)
+        if q2tree:
+            t = time.monotonic()
+            async with session.get(url + "/api/v1/q2tree") as r:
+                await r.read()
+                out["q2tree_status"] = r.status
+            out["q2tree_first_s"] = time.monotonic() - t
+        n, t0, frames = 0, time.monotonic(), set()
+        while time.monotonic() - t0 < seconds:
+            msg = await ws.receive(timeout=30)
+            if msg.type != aiohttp.WSMsgType.TEXT:
+                break
+            n += 1
+            frames.add(json.loads(msg.data)["frame"])
+        out["sets_per_s"] = n / (time.monotonic() - t0)
+        out["distinct_frames_per_s"] = len(frames) / (time.monotonic() - t0)
+    return out
+
+
+def _start_serve(camera: str, scene: str, state: Path, cfg: Path, env: dict[str, str], stderr: Any
+                 ) -> tuple[subprocess.Popen[str], str]:
+    """``lightprobe serve`` as a user starts it; returns the process and the dashboard URL it
+    printed."""
+    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", camera, "--scene", scene,
+                          "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
+                         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), **env}, stdout=subprocess.PIPE,
+                         stderr=stderr, text=True)
+    assert p.stdout is not None
+    for line in p.stdout:
+        if "dashboard http://" in line:
+            return p, line.split("dashboard ", 1)[1].split()[0].rstrip("/")
+    raise RuntimeError(f"service exited with {p.wait()}")
+
+
+def serve_live(state: Path, *, camera: str = "sim", scene: str = "flashlight", watch_s: float = 10.0,
+               rss_after_s: float = 60.0, env: dict[str, str] | None = None, q2tree: bool = True,
+               fps: float = 30.0) -> dict[str, Any]:
+    """``lightprobe serve`` as a user starts it: first lights after exec, light sets per second
+    on the WebSocket, the first q2tree call, reconnects logged, RSS and peak RSS after
+    ``rss_after_s`` seconds."""
+    cfg = _write_config(state, fps, 256)
+    t0 = time.monotonic()
+    log_path = state / "serve.log"
+    with log_path.open("w") as log:
+        p, url = _start_serve(camera, scene, state, cfg, env or {}, log)
+        try:
+            _t_api, t_lights, _first = asyncio.run(_first_lights(url, 300))
+            out: dict[str, Any] = {"camera": camera, "scene": scene, "lights_s": t_lights - t0}
+            out.update(asyncio.run(_watch(url, watch_s, q2tree)))
+            rest = rss_after_s - (time.monotonic() - t0)
+            if rest > 0:
+                time.sleep(rest)
+            out["rss_mb"], out["peak_rss_mb"] = _rss_mb(p.pid)
+            out["rss_at_s"] = time.monotonic() - t0
+            out["service_cpu_s"] = _cpu_s(p.pid)
+        finally:
+            stop_service(p)
+    text = log_path.read_text()
+    out["reconnects"] = text.count("reconnect")
+    out["capture_timeouts"] = text.count("CaptureTimeout")
+    out["loadavg_1min"] = os.getloadavg()[0]
+    return out
+
+
+def live_service_figures(quick: bool = False) -> dict[str, Any]:
+    """The wall-time part of ``lightprobe bench live`` (see bench/live.py)."""
+    rss_s = 15.0 if quick else 60.0
+    res: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="lp-live-") as tmp:
+        base = Path(tmp)
+        res["sim_cold"] = serve_live(base / "sim", rss_after_s=rss_s)
+        res["sim_warm"] = serve_live(base / "sim", rss_after_s=0, watch_s=3, q2tree=False)
+        res["sim_lebombo"] = serve_live(base / "leb", scene="lebombo", rss_after_s=0, watch_s=5, q2tree=False)
+        res["unit_numba_cache_cold"] = serve_live(base / "unit", rss_after_s=0, watch_s=3, q2tree=False,
+                                                  env={"NUMBA_CACHE_DIR": str(base / "unit" / "cache" / "numba")})
+        res["v4l2_fake"] = serve_live(base / "v4l2", camera="v4l2-fake", rss_after_s=rss_s)
+    return res

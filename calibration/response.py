@@ -52,7 +52,7 @@ __all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "capture_brac
 
 LEVELS = 256
 SMOOTHNESS = 40.0  # lambda of eq. 3 per data row (gsolve)
-SAMPLES = 1500  # sampled pixels per channel
+SAMPLES = 3000  # sampled pixels per channel
 CENSOR = 3  # codes within this many of 0 or 255 are clipped: censored data, not values
 IRLS_ROUNDS = 3
 

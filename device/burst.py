@@ -124,6 +124,17 @@ class BracketPlanner:
     dark_percentile: float = 2.0
     saturated_headroom: float = 8.0
     sweep_ev: float = 4.0
+    # What the bracket is for (module docstring): "pixels" (every pixel above the noise floor,
+    # an HDR photograph) or "lighting" (the light the scene sends, energy-weighted)
+    target: str = "pixels"
+    dark_energy: float = 0.005  # lighting: the share of the light its darkest pixels may leave noisy
+    frame_time_s: float = 0.0  # lighting: exposures up to one frame, gain first (0: no limit)
+    # lighting: allow exposures beyond the frame time once the gain is at its top (each costs the
+    # sensor's frame rate); off, the darkest corners stay noisier, which the integrated lighting
+    # hardly sees (their noise averages over thousands of pixels and they carry dark_energy)
+    long_exposures: bool = False
+    gain_range: tuple[float, float] = (1.0, 1.0)
+    step_s: float = 0.0  # the camera's exposure grid (0: continuous)
 
     def __post_init__(self) -> None:
         lo, hi = (float(x) for x in self.exposure_range)
@@ -133,33 +144,66 @@ class BracketPlanner:
             raise ValueError("max_exposures must be >= 1")
         if not (self.ev_step > 0 and self.max_ev_step >= self.ev_step):
             raise ValueError("need 0 < ev_step <= max_ev_step")
+        if self.target not in ("pixels", "lighting"):
+            raise ValueError(f"target must be 'pixels' or 'lighting', got {self.target!r}")
         self.exposure_range = (lo, hi)
 
     # ---- no history ------------------------------------------------------------------------
     def metering_sweep(self) -> list[float]:
-        """Exposures spanning the camera's whole range, ``sweep_ev`` stops apart where the count
-        allows (geometric, at most ``max_exposures``, shortest and longest included)."""
+        """Effective exposures (at ``gain``) spanning the camera's range up to the longest the
+        bracket may use, ``sweep_ev`` stops apart where the count allows (geometric, at most
+        ``max_exposures``, shortest and longest included); :meth:`to_controls` turns them into
+        what the camera takes."""
         lo, hi = self.exposure_range
-        span = math.log2(hi / lo)
+        hi = min(hi, self._longest())
+        span = math.log2(hi / lo) if hi > lo else 0.0
         if span <= 0:
             return [lo]
         n = min(self.max_exposures, max(2, math.ceil(span / self.sweep_ev) + 1))
         return [float(x) for x in np.geomspace(lo, hi, n)]
 
+    def _longest(self) -> float:
+        """The longest effective exposure (at ``gain``) the bracket may use: for the lighting
+        with a frame time and no long exposures, one frame at the top gain."""
+        lo, hi = self.exposure_range
+        g = float(self.gain)
+        top = hi * (max(self.gain_range[1], g) / g if self.target == "lighting" else 1.0)
+        if self.target == "lighting" and self.frame_time_s > 0 and not self.long_exposures:
+            top = min(top, max(self.frame_time_s, lo) * max(self.gain_range[1], g) / g)
+        return top
+
     # ---- from history ----------------------------------------------------------------------
     def scene_levels(self, rates: np.ndarray, *, saturated: np.ndarray | None = None,
-                     mask: np.ndarray | None = None) -> tuple[float, float] | None:
-        """(s_lo, s_hi) of the significant scene range, or None when nothing is measurable."""
+                     mask: np.ndarray | None = None, weights: np.ndarray | None = None,
+                     min_peak: float = 0.0) -> tuple[float, float] | None:
+        """(s_lo, s_hi) of the significant scene range, or None when nothing is measurable.
+
+        ``s_hi`` as in the module docstring. ``s_lo``: for ``target="pixels"`` the
+        ``dark_percentile`` of the pixels; for ``target="lighting"`` the rate below which the
+        pixels carry only ``dark_energy`` of the scene's light (rate x ``weights``, e.g. each
+        pixel's solid angle): the darkest corners may stay noisy, they hardly light anything.
+        ``min_peak``: a rate the bracket keeps unsaturated even if the scene no longer shows it
+        (what was brightest a few seconds ago: a lamp switched off may come back on)."""
         s = np.asarray(rates, dtype=np.float64)
         if saturated is not None:
             s = np.where(saturated, s * self.saturated_headroom, s)
-        sel = s[mask] if mask is not None else s.ravel()
-        sel = sel[np.isfinite(sel) & (sel > 0)]
+        ok = np.isfinite(s) & (s > 0)
+        if mask is not None:
+            ok &= mask
+        sel = s[ok]
         if sel.size == 0:
             return None
         k = min(self.bright_pixels, sel.size)
-        s_hi = max(float(np.partition(sel, sel.size - k)[sel.size - k]), self._significant_peak(s, mask))
-        s_lo = float(np.percentile(sel, self.dark_percentile))
+        s_hi = max(float(np.partition(sel, sel.size - k)[sel.size - k]), self._significant_peak(s, mask),
+                   float(min_peak))
+        if self.target == "lighting":
+            w = np.ones_like(sel) if weights is None else np.asarray(weights, np.float64)[ok]
+            order = np.argsort(sel)
+            energy = np.cumsum(sel[order] * w[order])
+            cut = int(np.searchsorted(energy, self.dark_energy * energy[-1], side="right"))
+            s_lo = float(sel[order[min(cut, sel.size - 1)]])
+        else:
+            s_lo = float(np.percentile(sel, self.dark_percentile))
         return max(min(s_lo, s_hi), 1e-300), max(s_hi, 1e-300)
 
     def _significant_peak(self, s: np.ndarray, mask: np.ndarray | None) -> float:
@@ -190,8 +234,42 @@ class BracketPlanner:
                 best = max(best, float(v[ri, ci]))
         return best
 
+    def controls(self, rates: np.ndarray | None = None, *, saturated: np.ndarray | None = None,
+                 mask: np.ndarray | None = None, weights: np.ndarray | None = None,
+                 min_peak: float = 0.0) -> list[tuple[float, float]]:
+        """(exposure, gain) pairs, ascending in exposure x gain, on the camera's grid.
+
+        The bracket in effective exposure ``t g`` is :meth:`plan`'s; with ``frame_time_s`` set,
+        an effective exposure longer than one frame takes gain first (up to ``gain_range``'s
+        top) and only the rest as exposure, so the sensor keeps its frame rate when it can.
+        Exposures are snapped to ``step_s`` (the shortest one down, to keep its headroom)."""
+        return self.to_controls(self.plan(rates, saturated=saturated, mask=mask, weights=weights,
+                                          min_peak=min_peak))
+
+    def to_controls(self, taus: Sequence[float]) -> list[tuple[float, float]]:
+        """Effective exposures (at ``gain``) as (exposure, gain) pairs on the camera's grid, gain
+        first beyond the frame time (:meth:`controls`)."""
+        g_lo, g_hi = (float(x) for x in self.gain_range)
+        lo, hi = self.exposure_range
+        out: list[tuple[float, float]] = []
+        base = max(self.gain, g_lo)
+        for n, tau in enumerate(taus):  # tau: exposure at the base gain; tau x base is what counts
+            g = base
+            if self.frame_time_s > 0 and tau > self.frame_time_s and g_hi > g:
+                g = min(g_hi, tau * base / self.frame_time_s)
+            t = min(max(tau * base / g, lo), hi)
+            if self.step_s > 0:
+                k = (math.floor(t / self.step_s + 1e-9) if n == 0 else round(t / self.step_s))
+                k = max(math.ceil(lo / self.step_s - 1e-9), min(math.floor(hi / self.step_s + 1e-9), k))
+                t = k * self.step_s
+            pair = (float(t), float(g))
+            if pair not in out:
+                out.append(pair)
+        return sorted(out, key=lambda p: p[0] * p[1])
+
     def plan(self, rates: np.ndarray | None = None, *, saturated: np.ndarray | None = None,
-             mask: np.ndarray | None = None) -> list[float]:
+             mask: np.ndarray | None = None, weights: np.ndarray | None = None,
+             min_peak: float = 0.0) -> list[float]:
         """Exposures (ascending, seconds) for the next burst.
 
         ``rates``: per-pixel exposure rates from the previous HDR frame (:func:`exposure_rates`),
@@ -201,14 +279,16 @@ class BracketPlanner:
         """
         if rates is None:
             return self.metering_sweep()
-        levels = self.scene_levels(rates, saturated=saturated, mask=mask)
+        levels = self.scene_levels(rates, saturated=saturated, mask=mask, weights=weights, min_peak=min_peak)
         lo, hi = self.exposure_range
         if levels is None:  # Black everywhere: the longest exposure is all we can do
             return [hi]
         s_lo, s_hi = levels
         g = float(self.gain)
+        # In effective exposure t g when the planner may raise the gain (controls())
+        top = self._longest()
         t_short = min(max(self.bright_target / (s_hi * g), lo), hi)
-        t_long = min(max(self.dark_target / (s_lo * g), t_short), hi)
+        t_long = min(max(self.dark_target / (s_lo * g), t_short), top)
         span = math.log2(t_long / t_short)
         n = math.ceil(span / self.ev_step - 1e-9) + 1
         if n > self.max_exposures:
@@ -217,7 +297,7 @@ class BracketPlanner:
         else:
             step = span / max(n - 1, 1)
         out = [t_short * 2.0 ** (step * i) for i in range(n)]
-        return [float(min(max(t, lo), hi)) for t in out]
+        return [float(min(max(t, lo), top)) for t in out]
 
 
 def order_exposures(exposures: Sequence[float], current: float | None = None) -> list[float]:

@@ -1,34 +1,52 @@
-"""The capture pipeline: camera -> burst -> fusion -> projection -> sampler, one frame per step.
+"""The live capture pipeline: every sensor frame updates the published lighting.
 
-:class:`Pipeline` owns the per-probe state that lives across frames (the bracket planner's view of
-the scene, the projector's remap tables, the stateful sampler, the last published lights) and runs
-one frame per :meth:`Pipeline.step`. Capture is async (the camera protocol); every whole-frame
-numpy stage runs in a worker thread, so the event loop only ever waits.
+:class:`Pipeline` runs one *frame* per :meth:`Pipeline.step`: the camera delivers one exposure of
+the current schedule; that frame is fused and projected at once into the output map (the equirect
+map's upper hemisphere, :func:`device.hdr.rolling.frame_to_map`), merged with the latest estimate
+of every other exposure in use (:class:`device.hdr.rolling.RollingMerge`: a lamp switching or a
+flashlight moving replaces the stale samples in this very frame), sampled into lights, and
+published. A light set per sensor frame; nothing at full sensor resolution that no output reads.
 
-Start-up and restarts are short: :meth:`Pipeline.start` only opens the camera; the projection
-tables (loaded from ``PipelineConfig.cache_dir``, built once per calibration otherwise) and the
-numba kernels load in a worker thread while the first burst is captured, and the first fused
-frame is published. After a camera fault the pipeline keeps its tables, sampler and the last good
-frame's exposure rates, so the first burst after the reconnect is planned, not a metering sweep.
+The schedule (the exposures and gains the camera cycles through) is planned *for the lighting*
+(:class:`device.burst.BracketPlanner`, ``target="lighting"``): the shortest exposure keeps the
+brightest thing in view unsaturated (with headroom for what the scene showed in the last few
+seconds, a lamp that switches), the longest is only as long as the light the scene sends needs
+(its darkest corners, which carry less than ``dark_energy`` of the light, may stay noisy),
+exposures beyond the sensor's frame time take gain first, and every exposure lies on the
+camera's own grid (V4L2/UVC 100 us units, libcamera microseconds) so it lands and verifies. The
+shortest exposure comes every other frame, so a lamp switching on is measured unsaturated within
+two frames whatever the cycle. The first cycle is a metering sweep over the camera's range.
+
+Cameras with per-frame metadata (libcamera, the simulator) take one control request per frame, a
+control latency ahead; each frame says which exposure it shows. Cameras without it (V4L2, UVC)
+settle each exposure by the verified-capture rule (:func:`device.burst.capture_burst`), one
+usable frame per exposure.
 
 It skips what a scene does not need:
 
-- exposures: the planner brackets only the dynamic range the previous frame showed;
-- resampling: when the lighting changed less than ``PipelineConfig.change_threshold`` (relative L1
-  change of a coarse HEALPix energy map, well above sensor noise) the previous light set is
-  republished with the new frame number and ``FrameResult.skipped`` is True;
-- lights below the horizon: with the default ``lower="zero"`` the published equirect map and the
-  light sets stand for the upper hemisphere only (the thin band the ~185 degree lens sees below
-  the horizon is left out, so the lights integrate exactly to the published map); samplers place
-  no lights there. The HEALPix and polar maps keep everything the lens saw.
+- exposures: the schedule brackets only the light the scene sends (above);
+- resampling: when the fused map's coarse energy changed less than ``change_threshold``
+  (relative L1, well above noise) since the last sampled frame, and so did the pixels the
+  rolling estimate found changed beyond noise since then (a small lamp moving within a coarse
+  block changes no block's energy, but its pixels), the last sampled map held no energy by
+  guess (a moving lamp a long exposure saw only saturated), and that was less than ``max_skip_s`` ago
+  (monotonic clock), the last light set is republished with the new frame number; a change
+  beyond it is sampled in the frame that shows it, never later;
+- lights below the horizon: the published map and light sets stand for the upper hemisphere.
+
+Previews and the exposure histogram are made when the API asks for them, not per frame.
+
+Start-up: :meth:`Pipeline.start` only opens the camera; the projection table (the equirect map
+only; from ``PipelineConfig.cache_dir`` when built before, else in under a second) and the numba
+kernels load in a worker thread while the first frame is captured.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
-import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -37,101 +55,149 @@ import numpy as np
 
 from device.core.calibration import Calibration
 from device.core.errors import InputError
-from device.core.sphere import luminance
-from drivers.base import Camera, Frame
+from device.core.sphere import equirect_row_solid_angle, luminance
+from drivers.base import Camera, Controls, Frame
 
 __all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "tone_map"]
 
 log = logging.getLogger(__name__)
 
-# Histogram of log2 luminance (fused fisheye image, calibrated unit): 64 bins, fixed edges.
+# Histogram of log2 luminance (the fused map, calibrated unit): 64 bins, fixed edges.
 HISTOGRAM_EDGES_LOG2 = np.linspace(-16.0, 24.0, 65)
 _PREVIEW_WIDTH = 320
-_CHANGE_NSIDE = 8
+_COARSE = (8, 16)  # blocks of the upper hemisphere for the change test (rows, columns)
+_REPLAN_S = 1.0  # replan the schedule at least this often (sensor seconds)
+_MEMORY_S = 10.0  # the shortest exposure keeps headroom for what was brightest this long ago
+_KEEP_EV = 0.2  # a replanned exposure this close (in EV, time and gain each) to one in use keeps it
+
+
+def _ev_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
+    return max(abs(math.log2(a[0] / b[0])), abs(math.log2(a[1] / b[1])))
 
 
 @dataclass
 class PipelineConfig:
     """What the pipeline does per frame. Validated on construction (InputError names the field)."""
 
-    fps: float = 10.0
+    fps: float = 30.0  # at most this many light sets per second (the camera paces below it)
     sampler: str = "q2tree"
     light_count: int = 256
-    max_exposures: int = 8  # the planner uses only what the scene needs (lebombo: 4)
+    max_exposures: int = 8
     ev_step: float = 2.0
     equirect_height: int = 256
-    nside: int = 64
+    nside: int = 64  # HEALPix resolution of the maps served on request
     probe_id: str = ""
-    change_threshold: float = 0.02  # relative L1 change of coarse energy that triggers resampling
+    change_threshold: float = 0.01  # relative L1 change of coarse energy that triggers resampling
     max_skip_s: float = 5.0  # resample at least this often even if nothing changed
     gain: float = 1.0
-    capture_timeout_s: float = 5.0  # per exposure of a burst
+    capture_timeout_s: float = 5.0  # per frame (plus the exposure itself)
     lower: str = "zero"
     cache_dir: str | None = None  # keep projection tables on disk here (fast restarts)
+    dark_energy: float = 0.005  # share of the light the longest exposure may leave noisy
     sampler_params: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         from device.sampling.registry import SAMPLERS
 
         checks = [
-            ("fps", 0 < self.fps <= 120),
+            ("fps", 0 < self.fps <= 240),
             ("light_count", 1 <= int(self.light_count) <= 10000),
             ("max_exposures", 1 <= int(self.max_exposures) <= 16),
             ("ev_step", 0.25 <= self.ev_step <= 6),
-            ("equirect_height", 8 <= int(self.equirect_height) <= 2048),
+            ("equirect_height", 8 <= int(self.equirect_height) <= 2048 and int(self.equirect_height) % 2 == 0),
             ("nside", 1 <= int(self.nside) <= 1024 and not int(self.nside) & (int(self.nside) - 1)),
             ("change_threshold", 0 <= self.change_threshold <= 1),
             ("max_skip_s", self.max_skip_s >= 0),
             ("gain", self.gain > 0),
             ("capture_timeout_s", self.capture_timeout_s > 0),
+            ("dark_energy", 0 <= self.dark_energy < 0.5),
         ]
         for name, ok in checks:
             if not ok:
                 raise InputError(f"pipeline setting {name}={getattr(self, name)!r} is out of range", param=name)
         if self.sampler not in SAMPLERS:
             raise InputError(f"sampler {self.sampler!r} is not one of {sorted(SAMPLERS)}", param="sampler")
-
-
-@dataclass
-class FrameResult:
-    """One frame through all stages (what the service publishes)."""
-
-    frame: int
-    timestamp: float
-    equirect: np.ndarray  # (He, 2He, 3) float32, probe frame, calibrated unit
-    polar: np.ndarray  # (90, 360, 3) float32
-    healpix: np.ndarray  # (12 nside^2, 3) float32 NESTED
-    lights: Any  # device.sampling.base.LightSet
-    exposures: list[float]
-    timings: dict[str, float]
-    histogram: np.ndarray  # (64,) counts of log2 luminance, edges HISTOGRAM_EDGES_LOG2
-    preview: np.ndarray  # (h, w, 3) uint8 sRGB tone-mapped fisheye view
-    skipped: bool
-    calibration_id: str
-    unit: str
-    saturated_fraction: float = 0.0
+        if self.lower != "zero":
+            raise InputError(f"lower={self.lower!r}: the live pipeline publishes the upper hemisphere "
+                             "only ('zero')", param="lower")
 
 
 def tone_map(radiance: np.ndarray, valid: np.ndarray | None = None, width: int = _PREVIEW_WIDTH) -> np.ndarray:
-    """The dashboard's fisheye preview: :func:`device.tonemap.tone_map` (hue-preserving
-    luminance Reinhard, robust log-average key) at most ``width`` pixels wide."""
+    """The dashboard's previews: :func:`device.tonemap.tone_map` (hue-preserving luminance
+    Reinhard, robust log-average key) at most ``width`` pixels wide."""
     from device.tonemap import tone_map as _tone_map
 
     return _tone_map(radiance, valid, width)
 
 
-def _coarse_energy(healpix: np.ndarray) -> np.ndarray:
-    """Luminance energy per HEALPix pixel at nside 8 (NESTED children are contiguous)."""
-    lum = luminance(np.asarray(healpix, np.float64))
-    n = lum.shape[0] // (12 * _CHANGE_NSIDE * _CHANGE_NSIDE)
-    return lum.reshape(-1, max(n, 1)).sum(axis=1) if n >= 1 else lum
+class FrameResult:
+    """One frame through every stage (what the service publishes). The fisheye preview and the
+    histogram are computed on first use (the API asks for them now and then, frames come 30 a
+    second)."""
+
+    def __init__(self, *, frame: int, timestamp: float, equirect: np.ndarray, lights: Any,
+                 exposures: list[float], gains: list[float], exposure_s: float, gain: float,
+                 timings: dict[str, float], skipped: bool, calibration_id: str, unit: str,
+                 saturated_fraction: float, sensor_time_s: float, preview_source: Any = None) -> None:
+        self.frame, self.timestamp, self.equirect, self.lights = frame, timestamp, equirect, lights
+        self.exposures, self.gains = exposures, gains  # the schedule in use (ascending t g)
+        self.exposure_s, self.gain = exposure_s, gain  # this frame's
+        self.timings, self.skipped = timings, skipped
+        self.calibration_id, self.unit = calibration_id, unit
+        self.saturated_fraction, self.sensor_time_s = saturated_fraction, sensor_time_s
+        self._preview_source = preview_source
+
+    @functools.cached_property
+    def preview(self) -> np.ndarray:
+        """(h, w, 3) uint8 sRGB tone-mapped fisheye view of the latest mid-bracket frame (what the
+        camera sees, for aiming), or of the fused map when there is no frame."""
+        src = self._preview_source
+        if src is None:
+            return tone_map(self.equirect)
+        radiance, valid = src()
+        return tone_map(radiance, valid)
+
+    @functools.cached_property
+    def histogram(self) -> np.ndarray:
+        """(64,) counts of log2 luminance of the fused map's lit pixels, edges HISTOGRAM_EDGES_LOG2."""
+        lum = luminance(self.equirect[: self.equirect.shape[0] // 2])
+        lum = lum[np.isfinite(lum) & (lum > 0)]
+        with np.errstate(divide="ignore"):
+            return np.histogram(np.log2(lum), bins=HISTOGRAM_EDGES_LOG2)[0]
+
+
+@dataclass
+class _Schedule:
+    """The exposures the camera cycles through, the shortest every other frame."""
+
+    controls: list[tuple[float, float]]  # ascending t g
+    sweep: bool = False
+    order: list[int] = field(default_factory=list)
+    pos: int = 0
+
+    def __post_init__(self) -> None:
+        n = len(self.controls)
+        if self.sweep or n <= 2:
+            self.order = list(range(n))
+        else:  # S, E1, S, E2, ...: the shortest measures a lamp within two frames
+            self.order = [k for i in range(1, n) for k in (0, i)]
+
+    def next(self) -> tuple[float, float]:
+        c = self.controls[self.order[self.pos % len(self.order)]]
+        self.pos += 1
+        return c
+
+    @property
+    def cycle_done(self) -> bool:
+        return self.pos >= len(self.order)
 
 
 class Pipeline:
-    """One probe's capture pipeline. See the module docstring.
+    """One probe's live pipeline (see the module docstring).
 
-    ``step()`` raises :class:`drivers.base.CameraError` on camera faults; the caller (the service's
-    frame loop) reconnects with backoff and keeps serving the last good result.
+    ``step()`` raises :class:`drivers.base.CameraError` on camera faults; the caller (the
+    service's frame loop) reconnects with backoff and keeps serving the last good result; the
+    rolling estimate and the schedule survive the reconnect.
     """
 
     def __init__(self, camera: Camera, calibration: Calibration, config: PipelineConfig | None = None) -> None:
@@ -141,28 +207,30 @@ class Pipeline:
         self.calibration = calibration
         self.config = config or PipelineConfig()
         self.latest: FrameResult | None = None
-        self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0, "exposures_saved": 0}
-        self._projector: Any = None
-        self._planner: Any = None
+        self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0}
+        self._tables: asyncio.Future[Any] | None = None
+        self._geo: Any = None  # projection table and per-pixel constants (_Geometry)
+        self._merge: Any = None
         self._sampler: Any = None
-        self._fov_mask: np.ndarray | None = None
-        self._prev: tuple[np.ndarray, np.ndarray] | None = None  # (rates, saturated) for the planner
-        # (coarse energy, time, from a metering sweep) of the last frame that was sampled
-        self._last_sampled: tuple[np.ndarray, float, bool] | None = None
+        self._schedule: _Schedule | None = None
+        self._planner: Any = None
         self._frame = 0
-        self._current_exposure: float | None = None
-        self._extra_lights = 0  # leaves a tree sampler spends on empty regions (see _sample)
         self._started = False
-        self._stream_on = False  # the next frame is the first after the camera opened
-        self._tables: asyncio.Future[tuple[Any, np.ndarray]] | None = None
+        self._stream_on = False
+        self._last_sampled: tuple[np.ndarray, float] | None = None  # (coarse energy, monotonic time)
+        self._sampled_lum: np.ndarray | None = None  # luminance x solid angle per pixel when last sampled
+        self._changed_since: np.ndarray | None = None  # pixels the merge found changed since then
+        self._guessed = False  # the last sampled map held energy no exposure measured (a moving lamp)
+        self._extra_lights = 0
+        self._planned_at = -math.inf  # sensor time of the last plan
+        self._bright: list[tuple[float, float]] = []  # (sensor time, brightest rate) history
+        self._preview: tuple[Frame, np.ndarray] | None = None
+        self._t_last: float | None = None
 
     # ---- lifecycle ----------------------------------------------------------------------------
     async def start(self) -> None:
-        """Open the camera; start building the per-calibration tables in a worker thread.
-
-        The first burst is captured while the tables load (or, on a cold start, are built: seconds),
-        and :meth:`step` waits for them only before fusion. The first frame after stream-on gets
-        a long timeout (slow on real sensors; the simulator loads its lens tables then)."""
+        """Open the camera (matching the calibration's image size); the projection table loads
+        (or is built) in a worker thread while the first frame is captured."""
         from device.burst import BracketPlanner
 
         await self.camera.open()
@@ -175,101 +243,49 @@ class Pipeline:
             if not match:
                 raise InputError(f"calibration image size {fe.image_size} matches no camera mode", param="calibration")
             await self.camera.set_mode(match[0])
-        if self._projector is None and self._tables is None:
-            self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_tables))
+        if self._geo is None and self._tables is None:
+            self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_geometry))
         caps = self.camera.capabilities
-        self._planner = BracketPlanner(caps.exposure_range, max_exposures=self.config.max_exposures,
-                                       ev_step=self.config.ev_step, gain=self.config.gain)
+        cfg = self.config
+        frame_time = 1.0 / max(self.camera.mode.max_fps, 1e-3)
+        self._planner = BracketPlanner(caps.exposure_range, max_exposures=cfg.max_exposures, ev_step=cfg.ev_step,
+                                       gain=max(cfg.gain, caps.gain_range[0]), target="lighting",
+                                       dark_energy=cfg.dark_energy, frame_time_s=frame_time,
+                                       gain_range=caps.gain_range, step_s=caps.exposure_step_s)
+        if self._schedule is None:
+            self._schedule = _Schedule(self._sweep(), sweep=True)
         self._stream_on = True
         self._started = True
 
-    def _build_tables(self) -> tuple[Any, np.ndarray]:
-        """Projector (remap tables: from ``cache_dir`` when built before) and field-of-view mask;
-        then one projection of a black frame with one invalid pixel, one fusion of a tiny burst
-        and two samplings of a small map (a full build, then the incremental update the first
-        frame also runs), so every numba kernel of the first frame is loaded (from numba's cache)
-        here, in parallel with the first burst, rather than after it; the preview module is
-        imported."""
-        import cv2  # noqa: F401  (tone_map)
-
-        from device.burst import field_of_view_mask
-        from device.projection import Projector
-
-        cfg, fe = self.config, self.calibration.fisheye
-        assert fe is not None
-        projector = Projector(self.calibration, equirect_height=cfg.equirect_height, nside=cfg.nside,
-                              lower=cfg.lower, cache_dir=cfg.cache_dir)
-        mask = field_of_view_mask(fe)
-        w, h = fe.image_size
-        one_bad = mask.copy()
-        one_bad[h // 2, w // 2] = False  # also loads the kernel for invalid pixels (saturated lamps)
-        projector.project(np.zeros((h, w, 3), np.float32), valid=one_bad)
-        try:  # warm-up only: a failure here costs the first frame time, nothing else
-            self._warm_fusion()
-            warm = np.zeros((16, 32, 3), np.float32)
-            warm[:8] = 1.0  # lit upper hemisphere, black below (as published)
-            sampler = self._make_sampler(cfg.sampler)
-            sampler.sample(warm, 13)
-            warm[:4, :8] = 3.0
-            sampler.sample(warm, 13)
-        except Exception as e:
-            log.debug("kernel warm-up failed: %s", e)
-        return projector, mask
-
-    def _warm_fusion(self) -> None:
-        """Fuse a tiny two-frame burst in the camera's pixel format (loads the merge kernel)."""
-        from device.hdr.fusion import fuse_frames
-        from drivers.base import Frame, FrameMetadata
-
-        fmt = self.camera.mode.format
-        if fmt.is_raw:
-            data, white = np.zeros((2, 2, 3), np.uint16), float((1 << fmt.bit_depth) - 1)
-        else:
-            data, white = np.zeros((2, 2, 3), np.uint8), 255.0
-        frames = [Frame(data + 1, FrameMetadata(t, 1.0, 0.0, i), fmt, 0.0, white)
-                  for i, t in enumerate((1e-3, 4e-3))]
-        fuse_frames(frames, self.calibration.response)
-
-    async def _ensure_tables(self) -> None:
-        """Wait for the tables (started by :meth:`start`, or now after a geometry change)."""
-        if self._projector is None:
-            if self._tables is None:
-                self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_tables))
-            task = self._tables
-            try:
-                self._projector, self._fov_mask = await asyncio.shield(task)
-            finally:
-                if task.done():
-                    self._tables = None
-        if self._sampler is None:
-            self._sampler = self._make_sampler(self.config.sampler)
+    def _sweep(self) -> list[tuple[float, float]]:
+        return self._planner.to_controls(self._planner.metering_sweep())
 
     async def stop(self) -> None:
         self._started = False
-        self._current_exposure = None  # a reopened camera starts from its default exposure
         await self.camera.close()
 
     async def reopen(self) -> None:
-        """Close and open the camera again after a fault; keeps tables and sampler state."""
+        """Close and open the camera again after a fault; keeps tables, schedule and estimate."""
         try:
             await self.camera.close()
         finally:
             await self.start()
 
     def reconfigure(self, config: PipelineConfig) -> None:
-        """Apply new settings; tables are rebuilt on the next ``start()`` only if geometry changed."""
+        """Apply new settings; the table is rebuilt on the next step only if the geometry changed."""
         old = self.config
         self.config = config
         if (config.sampler, config.sampler_params) != (old.sampler, old.sampler_params):
             self._sampler = self._make_sampler(config.sampler)
             self._last_sampled = None
-        if (config.equirect_height, config.nside, config.lower) != (old.equirect_height, old.nside, old.lower):
-            self._projector, self._tables = None, None  # rebuilt (in a thread) by the next step()
+        if config.equirect_height != old.equirect_height:
+            self._geo, self._tables, self._merge = None, None, None
         if self._planner is not None:
             self._planner.max_exposures = config.max_exposures
             self._planner.ev_step = config.ev_step
             self._planner.max_ev_step = max(self._planner.max_ev_step, config.ev_step)
-            self._planner.gain = config.gain
+            self._planner.dark_energy = config.dark_energy
+            self._planned_at = -math.inf
         if config.light_count != old.light_count:
             self._last_sampled = None
 
@@ -278,102 +294,215 @@ class Pipeline:
 
         return make_sampler(name, **self.config.sampler_params)
 
+    # ---- tables -------------------------------------------------------------------------------
+    def _build_geometry(self) -> _Geometry:
+        """The equirect table (from ``cache_dir`` when built before), per output pixel constants,
+        and one warm-up of every kernel the first frame runs (numba's cache loads them here, in
+        parallel with the first capture)."""
+        from device.projection import Projector
+
+        cfg = self.config
+        projector = Projector(self.calibration, equirect_height=cfg.equirect_height, nside=cfg.nside,
+                              lower="zero", subdiv=2, cache_dir=cfg.cache_dir, maps=("equirect",))
+        geo = _Geometry(projector, self.calibration, cfg.equirect_height)
+        try:  # warm-up only: a failure costs the first frame time, nothing else
+            self._warm(geo)
+        except Exception as e:
+            log.debug("kernel warm-up failed: %s", e)
+        from device.core.memory import release_memory
+
+        release_memory()  # the table build's temporaries
+        return geo
+
+    def _warm(self, geo: _Geometry) -> None:
+        from device.hdr.rolling import RollingMerge, frame_to_map
+
+        fe = self.calibration.fisheye
+        assert fe is not None
+        w, h = fe.image_size
+        fmt = self.camera.mode.format
+        codes = np.zeros((w * h, 3), np.uint16 if fmt.is_raw else np.uint8)
+        lut, dark = geo.lut(1e-3, 1.0, fmt)
+        frame_to_map(geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark, geo.rows)
+        RollingMerge(geo.rows, max_slots=2).update((1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain,
+                                                   codes, lut, dark)
+        warm = np.zeros((16, 32, 3), np.float32)
+        warm[:8] = 1.0
+        sampler = self._make_sampler(self.config.sampler)
+        sampler.sample(warm, 13)
+        warm[:4, :8] = 3.0
+        sampler.sample(warm, 13)
+
+    async def _ensure_tables(self) -> None:
+        from device.hdr.rolling import RollingMerge
+
+        if self._geo is None:
+            if self._tables is None:
+                self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_geometry))
+            task = self._tables
+            try:
+                self._geo = await asyncio.shield(task)
+            finally:
+                if task.done():
+                    self._tables = None
+        if self._merge is None:
+            self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
+                                       max_slots=self.config.max_exposures + 2)
+        if self._sampler is None:
+            self._sampler = self._make_sampler(self.config.sampler)
+
     # ---- one frame ----------------------------------------------------------------------------
     async def step(self) -> FrameResult:
-        """Capture one burst and push it through every stage."""
-        from device.burst import capture_burst, order_exposures
-
+        """Capture one frame and push it through every stage."""
         if not self._started:
             await self.start()
-        t0 = time.perf_counter()
-        prev = self._prev
-        exposures = self._planner.plan(*((prev[0],) if prev else ()),
-                                       saturated=prev[1] if prev else None, mask=self._fov_mask)
-        exposures = order_exposures(exposures, self._current_exposure)
-        first = max(30.0, self.config.capture_timeout_s) if self._stream_on else None
-        frames = await capture_burst(self.camera, exposures, gain=self.config.gain,
-                                     timeout=self.config.capture_timeout_s, first_timeout=first)
-        self._stream_on = False
-        self._current_exposure = exposures[-1]
-        t1 = time.perf_counter()
-        await self._ensure_tables()  # built in parallel with the burst (or after reconfigure())
-        t2 = time.perf_counter()
-        result = await asyncio.to_thread(self._process, frames, prev is None)
+        t0, c0 = time.perf_counter(), time.process_time()
+        frame, exposure, gain = await self._capture()
+        t1, c1 = time.perf_counter(), time.process_time()
+        await self._ensure_tables()
+        t2, c2 = time.perf_counter(), time.process_time()
+        result = await asyncio.to_thread(self._process, frame, exposure, gain)
+        # wall seconds per stage, and the process's CPU seconds while the camera delivered the
+        # frame (a simulator's rendering; a real camera's driver) and while the frame was processed
         result.timings = {"capture": t1 - t0, "tables_wait": t2 - t1, **result.timings,
-                          "total": time.perf_counter() - t0}
+                          "total": time.perf_counter() - t0, "capture_cpu": c1 - c0,
+                          "process_cpu": time.process_time() - c2}
         self._update_stats(result)
         self.latest = result
         return result
 
-    def _process(self, frames: list[Frame], sweep: bool) -> FrameResult:
-        """Fusion, projection, change test and sampling (runs in a worker thread)."""
-        from device.burst import exposure_rates
-        from device.hdr.fusion import fuse_frames
+    async def _capture(self) -> tuple[Frame, float, float]:
+        """One usable frame and the (exposure, gain) it shows."""
+        from device.burst import capture_burst
 
-        cal = self.calibration
-        assert cal.response is not None
+        assert self._schedule is not None
+        caps = self.camera.capabilities
+        t, g = self._schedule.next()
+        first = max(30.0, self.config.capture_timeout_s) if self._stream_on else None
+        if caps.has_frame_metadata:
+            await self.camera.apply(Controls(exposure_s=t, gain=g))
+            wait = (first or self.config.capture_timeout_s) + 4 * max(c[0] for c in self._schedule.controls)
+            frame = await self.camera.capture(wait)
+            self._stream_on = False
+            if frame.meta.exposure_verified:
+                return frame, float(frame.meta.exposure_s), float(frame.meta.gain)
+        frames = await capture_burst(self.camera, [t], gain=g, timeout=self.config.capture_timeout_s,
+                                     first_timeout=first, pipelined=False)
+        self._stream_on = False
+        return frames[0], t, g
+
+    def _process(self, frame: Frame, exposure: float, gain: float) -> FrameResult:
+        """Fuse and project the frame, merge, test for change, sample (in a worker thread)."""
+        geo, merge = self._geo, self._merge
         t0 = time.perf_counter()
-        fused = fuse_frames(frames, cal.response)
-        full_scale = cal.response.inverse[-1] if not frames[0].format.is_raw else 1.0
-        valid = self._fov_mask
-        scale = 1.0 if cal.photometric is None else cal.photometric.scale
-        side: dict[str, Any] = {}
-
-        def side_work() -> None:
-            """What the lights do not need (the next burst's plan, histogram, preview), on the
-            other core while this thread projects and samples."""
-            try:
-                side["rates"] = exposure_rates(fused.radiance, full_scale)
-                lum = luminance(fused.radiance[valid] * np.float32(scale))
-                with np.errstate(divide="ignore"):
-                    side["hist"] = np.histogram(np.log2(lum[lum > 0]), bins=HISTOGRAM_EDGES_LOG2)[0]
-                side["preview"] = tone_map(fused.radiance, valid)
-                side["sat"] = float(fused.saturated[valid].mean()) if valid is not None and valid.any() else 0.0
-            except BaseException as e:  # re-raised by the frame's thread
-                side["error"] = e
-
-        helper = threading.Thread(target=side_work, name="lightprobe-frame-side", daemon=True)
-        helper.start()
-        t1 = time.perf_counter()
-        maps = self._projector.project(fused.radiance, valid=~fused.invalid)
-        equirect = maps.equirect
-        if self.config.lower == "zero":  # Upper hemisphere only (rows of an even-height map)
-            equirect = equirect.copy()
-            equirect[equirect.shape[0] // 2:] = 0.0
-        t2 = time.perf_counter()
         self._frame += 1
+        lut, dark = geo.lut(exposure, gain, frame.format, frame.black_level, frame.white_level)
+        codes = np.ascontiguousarray(frame.data).reshape(-1, 3)
+        if codes.dtype not in (np.uint8, np.uint16):
+            from device.hdr.fusion import _as_index
+
+            codes = _as_index(codes, lut.shape[0] - 1).reshape(-1, 3)
+        t1 = time.perf_counter()
+        fused = merge.update((exposure, gain), self._frame, geo.table, geo.geo_n, geo.mean_gain, codes,
+                             lut, dark)
+        equirect = np.zeros((geo.height, 2 * geo.height, 3), np.float32)
+        equirect[: geo.height // 2] = fused.reshape(geo.height // 2, 2 * geo.height, 3)
+        t2 = time.perf_counter()
+        sensor_t = float(frame.meta.timestamp_s)
         now = time.time()
-        coarse = _coarse_energy(maps.healpix)
-        skipped = self._unchanged(coarse, now)
+        coarse = geo.coarse_energy(equirect)
+        if self._changed_since is None or self._changed_since.shape != merge.changed.shape:
+            self._changed_since = np.zeros_like(merge.changed)
+        self._changed_since |= merge.changed
+        self._changed_since |= merge.held
+        skipped = self._unchanged(coarse, fused)
         if skipped:
             lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False)  # type: ignore[union-attr]
         else:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp = self._frame, now
-            self._last_sampled = (coarse, now, sweep)
+            self._last_sampled = (coarse, time.monotonic())
+            self._sampled_lum = luminance(fused.astype(np.float64)) * geo.solid_angle_out
+            self._changed_since[:] = False
+            self._guessed = bool(merge.held.any())
         t3 = time.perf_counter()
-        helper.join()
-        if "error" in side:
-            raise side["error"]
-        self._prev = (side["rates"], fused.saturated)
-        hist, preview, sat = side["hist"], side["preview"], side["sat"]
+        if self._is_preview_exposure(exposure, gain):
+            self._preview = (frame, lut)
+        self._advance_schedule(fused, sensor_t, (exposure, gain))
+        sched = self._schedule
+        assert sched is not None
+        bounded = float(merge.bounded.mean())
+        preview = self._preview
         return FrameResult(
-            frame=self._frame, timestamp=now, equirect=equirect, polar=maps.polar, healpix=maps.healpix,
-            lights=lights, exposures=[float(f.meta.exposure_s) for f in frames],
-            timings={"fusion": t1 - t0, "projection": t2 - t1, "sampling": t3 - t2},
-            histogram=hist, preview=preview, skipped=skipped, calibration_id=cal.id,
-            unit=self.unit, saturated_fraction=sat)
+            frame=self._frame, timestamp=now, equirect=equirect, lights=lights,
+            exposures=[c[0] for c in sched.controls], gains=[c[1] for c in sched.controls],
+            exposure_s=exposure, gain=gain,
+            timings={"prepare": t1 - t0, "fusion": t2 - t1, "sampling": t3 - t2},
+            skipped=skipped, calibration_id=self.calibration.id, unit=self.unit,
+            saturated_fraction=bounded, sensor_time_s=sensor_t,
+            preview_source=(lambda p=preview, g_=geo: g_.linear_frame(*p)) if preview is not None else None)
 
-    def _unchanged(self, coarse: np.ndarray, now: float) -> bool:
+    def _is_preview_exposure(self, exposure: float, gain: float) -> bool:
+        sched = self._schedule
+        if sched is None or not sched.controls:
+            return True
+        mid = sched.controls[len(sched.controls) // 2]
+        return (exposure, gain) == mid or self._preview is None
+
+    def _advance_schedule(self, fused: np.ndarray, sensor_t: float, key: tuple[float, float]) -> None:
+        """Replan from the fused map when a cycle is done (or a second passed): the planner's
+        rates are the map's radiance per unit exposure at each output pixel."""
+        sched = self._schedule
+        assert sched is not None
+        if not sched.cycle_done and sensor_t - self._planned_at < _REPLAN_S:
+            return
+        if not sched.cycle_done and sched.sweep:
+            return  # a metering sweep runs to its end
+        if not sched.sweep and key != sched.controls[0]:
+            return  # plan right after the shortest exposure: what no exposure measures is saturated
+                    # in it too (a lamp's edge a long frame saw move is not)
+        geo, merge = self._geo, self._merge
+        shape = (geo.height // 2, 2 * geo.height)
+        rates = (np.maximum(fused, 0.0).max(axis=1) * geo.inv_gain_out / geo.full_scale).reshape(shape)
+        saturated = merge.bounded.reshape(shape).copy()
+        weights = geo.solid_angle_out.reshape(shape)
+        # keep headroom for the brightest the scene showed lately (a lamp that switches)
+        levels = self._planner.scene_levels(rates, saturated=saturated, weights=weights)
+        self._bright = [(t, s) for t, s in self._bright if sensor_t - t <= _MEMORY_S]
+        self._bright.append((sensor_t, levels[1] if levels else 0.0))
+        recent = max(s for _, s in self._bright)
+        controls = self._planner.controls(rates, saturated=saturated, weights=weights, min_peak=recent)
+        if not sched.sweep:  # hysteresis: an exposure within ~15% of one in use stays as it is
+            controls = [min(sched.controls, key=lambda o: _ev_distance(o, c))
+                        if min(_ev_distance(o, c) for o in sched.controls) < _KEEP_EV else c for c in controls]
+            controls = sorted(set(controls), key=lambda c: c[0] * c[1])
+        keep = set(controls)
+        merge.forget(keep, older_than=self._frame - 2 * len(controls))
+        self._schedule = _Schedule(controls)
+        self._planned_at = sensor_t
+
+    def _unchanged(self, coarse: np.ndarray, fused: np.ndarray) -> bool:
         if self._last_sampled is None or self.latest is None:
             return False
-        ref, when, was_sweep = self._last_sampled
-        if was_sweep or now - when > self.config.max_skip_s:
-            return False  # a metering sweep is a coarse estimate: the first planned burst replaces it
+        sched = self._schedule
+        if sched is not None and (sched.sweep or sched.pos <= len(sched.order)):
+            return False  # the estimate is still taking in a new schedule's exposures
+        if self._guessed:
+            return False  # the last set placed a moving lamp by guess: publish the measurement
+        ref, when = self._last_sampled
+        if time.monotonic() - when > self.config.max_skip_s:
+            return False
         denom = float(np.abs(ref).sum())
         if denom <= 0:
             return float(np.abs(coarse).sum()) <= 0
-        return float(np.abs(coarse - ref).sum()) / denom < self.config.change_threshold
+        if float(np.abs(coarse - ref).sum()) / denom >= self.config.change_threshold:
+            return False
+        moved = np.flatnonzero(self._changed_since) if self._changed_since is not None else np.zeros(0, np.intp)
+        if len(moved) and self._sampled_lum is not None and self._geo is not None:
+            now = luminance(fused[moved].astype(np.float64)) * self._geo.solid_angle_out[moved]
+            if float(np.abs(now - self._sampled_lum[moved]).sum()) / denom >= self.config.change_threshold:
+                return False
+        return True
 
     @property
     def unit(self) -> str:
@@ -419,11 +548,80 @@ class Pipeline:
         s = self.stats
         s["frames"] += 1
         s["frames_skipped"] += int(r.skipped)
-        s["exposures_saved"] += max(0, self.config.max_exposures - len(r.exposures))
         s["last_timings"] = r.timings
         s["exposures"] = r.exposures
-        total = r.timings.get("total", 0.0)
-        if total > 0:
-            inst = 1.0 / total
-            s["fps"] = inst if s["fps"] == 0 else 0.8 * s["fps"] + 0.2 * inst
+        now = time.monotonic()
+        if self._t_last is not None:
+            inst = 1.0 / max(now - self._t_last, 1e-6)
+            s["fps"] = inst if s["fps"] == 0 else 0.9 * s["fps"] + 0.1 * inst
+        self._t_last = now
         s["fps"] = float(s["fps"]) if math.isfinite(s["fps"]) else 0.0
+
+
+class _Geometry:
+    """What the pipeline derives once per calibration and output size: the equirect table's
+    upper-hemisphere rows, per output pixel constants (solid angle, mean inverse gain), the
+    coarse blocks of the change test and the fusion LUTs per exposure."""
+
+    def __init__(self, projector: Any, calibration: Calibration, height: int) -> None:
+        self.projector = projector
+        self.calibration = calibration
+        self.height = height
+        self.table = projector.table("equirect")
+        self.inv_gain = np.ascontiguousarray(projector.inverse_gain, np.float64)
+        self.rows = height // 2 * 2 * height  # the upper hemisphere's output pixels
+        t = self.table
+        ip = np.asarray(t.indptr[: self.rows + 1])
+        row_of = np.repeat(np.arange(self.rows), np.diff(ip))
+        d = np.asarray(t.data[: ip[-1]], np.float64)
+        ig = self.inv_gain[np.asarray(t.indices[: ip[-1]])]
+        geo_w = np.bincount(row_of, d * ig, self.rows)
+        self.inv_gain_out = np.where(geo_w > 0, np.bincount(row_of, d * ig * ig, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
+        self.mean_gain = np.where(geo_w > 0, np.bincount(row_of, d, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
+        self.geo_n = (d * ig).astype(np.float32)  # each entry's geometric weight (data / gain)
+        omega = equirect_row_solid_angle(height)[: height // 2]
+        self.solid_angle_out = np.repeat(omega, 2 * height)
+        resp = calibration.response
+        assert resp is not None
+        self.full_scale = float(np.max(resp.inverse[-1]))
+
+    def lut(self, exposure: float, gain: float, fmt: Any, black: float = 0.0, white: float = 255.0
+            ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The fusion LUT of one exposure (memoised in ``device.hdr.fusion``) and its bounds
+        (:func:`device.hdr.rolling.lut_bounds`)."""
+        from device.hdr.fusion import FusionSettings, _sanitized, packed_lut
+        from device.hdr.rolling import lut_bounds
+
+        st = FusionSettings()
+        resp = self.calibration.response
+        assert resp is not None
+        if fmt.is_raw:
+            levels = 1 << fmt.bit_depth
+            z = np.arange(levels, dtype=np.float64)
+            inv = np.repeat(np.clip((z - black) / max(white - black, 1.0), 0.0, None)[:, None], 3, axis=1)
+            lut = packed_lut(inv, exposure, gain, black=black, sat=white, settings=st)
+        else:
+            inv = _sanitized(resp.inverse)
+            lut = packed_lut(inv, exposure, gain, black=0.0, sat=float(inv.shape[0] - 1), settings=st,
+                             log_sigma=resp.log_sigma)
+        return lut, lut_bounds(lut)
+
+    def coarse_energy(self, equirect: np.ndarray) -> np.ndarray:
+        """Luminance x solid angle of the upper hemisphere in _COARSE blocks."""
+        up = luminance(equirect[: self.height // 2].astype(np.float64))
+        r, c = _COARSE
+        h, w = up.shape
+        if h % r or w % c:
+            return np.asarray([float((up * self.solid_angle_out.reshape(h, w)).sum())])
+        omega_rows = self.solid_angle_out.reshape(h, w)[:, 0].reshape(r, h // r)  # omega is per row
+        blocks = (up.reshape(r, h // r, c, w // c) * omega_rows[:, :, None, None]).sum(axis=(1, 3))
+        return blocks.ravel()
+
+    def linear_frame(self, frame: Frame, lut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A frame's linear radiance (h, w, 3) float32 through its LUT (x pixel gain) and the
+        lens mask: the fisheye preview's input."""
+        codes = np.asarray(frame.data)
+        h, w = codes.shape[:2]
+        vals = np.stack([lut[codes[..., c].astype(np.intp), c, 0] for c in range(3)], axis=-1)
+        gain = (np.where(self.inv_gain > 0, 1.0 / np.maximum(self.inv_gain, 1e-300), 0.0)).reshape(h, w)
+        return (vals * gain[..., None]).astype(np.float32), self.projector.lens_mask

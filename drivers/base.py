@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import math
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import TYPE_CHECKING, Self
@@ -45,6 +46,7 @@ __all__ = [
     "FrameMetadata",
     "Mode",
     "PixelFormat",
+    "snap_exposure",
 ]
 
 
@@ -141,6 +143,23 @@ class Capabilities:
     control_latency_frames: int
     model: str = ""
     serial: str = ""
+    # The exposure grid (s): the device sets whole multiples of it (V4L2/UVC 100 us units,
+    # libcamera microseconds); 0 = any value in the range. Request exposures on it
+    # (:func:`snap_exposure`) or they land rounded and no frame shows the value asked for.
+    exposure_step_s: float = 0.0
+
+
+def snap_exposure(caps: Capabilities, exposure_s: float, *, down: bool = False) -> float:
+    """``exposure_s`` on the camera's grid (nearest multiple of ``exposure_step_s``, or the
+    next one down with ``down=True``), clamped to the exposure range (itself on the grid)."""
+    lo, hi = caps.exposure_range
+    t = min(max(float(exposure_s), lo), hi)
+    step = float(caps.exposure_step_s)
+    if step <= 0:
+        return t
+    k = math.floor(t / step + 1e-9) if down else round(t / step)
+    kmin, kmax = math.ceil(lo / step - 1e-9), math.floor(hi / step + 1e-9)
+    return max(kmin, min(kmax, k)) * step
 
 
 @dataclass(frozen=True, slots=True)

@@ -208,6 +208,7 @@ class Picamera2Camera(Camera):
             exposure_range=(max(emin, 1) / 1e6, min(emax / 1e6, self.max_exposure_s)),
             gain_range=(float(gmin), float(gmax)), modes=tuple(modes), has_frame_metadata=True,
             control_latency_frames=self.buffer_count + 3, model=str(props.get("Model", "")),
+            exposure_step_s=1e-6,  # ExposureTime is whole microseconds (the line time rounds further)
         )  # fmt: skip
 
     def _configure(self, mode: Mode) -> None:

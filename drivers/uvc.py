@@ -395,7 +395,8 @@ class UvcCamera(Camera):
             raise
         self._ctl = ctl
         self._caps = Capabilities(ctl.exposure_range, ctl.gain_range, self._frames.modes, False,
-                                  self.latency_frames, model=ctl.name, serial=str(dev.serial_number or ""))  # fmt: skip
+                                  self.latency_frames, model=ctl.name, serial=str(dev.serial_number or ""),
+                                  exposure_step_s=float(getattr(ctl, "exposure_step_s", 0.0)))  # fmt: skip
         self._tracker = SettleTracker(self.latency_frames, exposure_s=exp, gain=gain, gamma=1 / 2.2)
         await self._frames.start()
 

@@ -19,20 +19,20 @@ __all__ = ["fake_v4l2_camera", "sim_camera"]
 
 def sim_camera(arg: str = "", *, scene: str | None = None,
                cache_dir: str | os.PathLike[str] | None = None, **options: Any) -> Camera:
-    """``--camera sim``: the simulated probe on ``scene`` (InputError names a bad scene)."""
+    """``--camera sim``: the simulated probe on ``scene`` (InputError names a bad scene), paced
+    at its frame rate as a sensor is (``realtime=False`` runs it as fast as it renders)."""
     from .camera import SimCamera
     from .scenarios import load_scene
 
     seed = int(options.pop("seed", 0))
+    options.setdefault("realtime", True)
     return SimCamera(load_scene(scene or "flashlight", seed=seed), seed=seed, cache_dir=cache_dir,
                      **options)
 
 
 def fake_v4l2_camera(arg: str = "", **_: Any) -> Camera:
-    """``--camera v4l2-fake``: the real V4L2 driver over the fake UVC kernel."""
-    from drivers.v4l2.camera import V4L2Camera
+    """``--camera v4l2-fake``: the real V4L2 driver over the fake UVC kernel, with the fake
+    module's factory calibration."""
+    from .v4l2_fake import FakeUVCCamera
 
-    from .v4l2_fake import FakeV4L2Node
-
-    node = FakeV4L2Node()
-    return V4L2Camera(node.path, opener=node.open)
+    return FakeUVCCamera()

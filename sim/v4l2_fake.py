@@ -32,11 +32,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from device.core.calibration import Calibration, FisheyeModel, Pose, Response
 from drivers.base import CameraDisconnected, CameraUnavailable
 from drivers.v4l2._ioctl import IoctlError
 from drivers.v4l2._structs import ABI64, V4L2Abi
+from drivers.v4l2.camera import V4L2Camera
 
-__all__ = ["FakeV4L2Device", "FakeV4L2Node", "rgb_to_yuyv", "sim_scene"]
+__all__ = ["FakeUVCCamera", "FakeV4L2Device", "FakeV4L2Node", "fake_uvc_calibration", "rgb_to_yuyv", "sim_scene"]
 
 # ioctl nr -> name, and the kernel's struct size per ABI (bits) for that ioctl.
 _NR = {0: "VIDIOC_QUERYCAP", 2: "VIDIOC_ENUM_FMT", 4: "VIDIOC_G_FMT", 5: "VIDIOC_S_FMT",
@@ -157,6 +159,7 @@ class FakeV4L2Device:
         self.violations: list[str] = []
         self.drop_frames = 0  # fault injection: the next N sensor frames find no buffer
         self._st = _State()
+        self._rendered: dict[tuple[int, int, int, float, int], bytes] = {}
         self._lock = threading.RLock()
         self._rfd, self._wfd = os.pipe()
         os.set_blocking(self._rfd, False)
@@ -418,13 +421,19 @@ class FakeV4L2Device:
         ae = self.node.controls.get(CID_EXPOSURE_AUTO)
         auto = ae is None or ae.value != 1  # no controls at all: the camera runs its own AE
         exposure_s = 0.0156 if auto else self._st.sensor_exposure * 1e-4
-        lin = sim_scene(w, h) * (exposure_s * self._st.sensor_gain / 16.0)
-        rgb = (255.0 * np.clip(lin, 0.0, 1.0) ** (1 / 2.2) + 0.5).astype(np.uint8)
-        if f == MJPG:
-            _ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
-            data = jpg.tobytes()
-        else:
-            data = rgb_to_yuyv(rgb).tobytes()
+        key = (w, h, f, exposure_s, self._st.sensor_gain)
+        data = self._rendered.get(key)
+        if data is None:  # the scene is static: a frame per (exposure, gain), as cheap as a kernel's copy
+            lin = sim_scene(w, h) * (exposure_s * self._st.sensor_gain / 16.0)
+            rgb = (255.0 * np.clip(lin, 0.0, 1.0) ** (1 / 2.2) + 0.5).astype(np.uint8)
+            if f == MJPG:
+                _ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+                data = jpg.tobytes()
+            else:
+                data = rgb_to_yuyv(rgb).tobytes()
+            if len(self._rendered) >= 16:
+                self._rendered.clear()
+            self._rendered[key] = data
         out[: len(data)] = data
         return len(data)
 
@@ -442,3 +451,29 @@ def rgb_to_yuyv(rgb: np.ndarray) -> np.ndarray:
     out[:, 0::2, 1] = np.clip(np.rint((cb[:, 0::2] + cb[:, 1::2]) / 2), 0, 255)
     out[:, 1::2, 1] = np.clip(np.rint((cr[:, 0::2] + cr[:, 1::2]) / 2), 0, 255)
     return out
+
+
+def fake_uvc_calibration(width: int = 640, height: int = 480) -> Calibration:
+    """What a webcam module's vendor would ship for the fake camera: an equidistant 180-degree
+    fisheye filling the frame's height, centred, and the gamma-2.2 response the fake applies
+    (the YUYV round trip adds under a code of error). No photometric scale: unit ``relative``."""
+    f = (min(width, height) / 2.0) / (np.pi / 2.0)
+    K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+    fisheye = FisheyeModel(image_size=(width, height), K=K, D=np.zeros(4), fov_deg=180.0)
+    z = np.arange(256, dtype=np.float64) / 255.0
+    inverse = np.repeat((z ** 2.2)[:, None], 3, axis=1)
+    inverse[0] = 0.5 * inverse[1]  # strictly increasing
+    return Calibration(fisheye=fisheye, response=Response("table", 8, inverse, method="factory"),
+                       pose=Pose(), source="factory")
+
+
+class FakeUVCCamera(V4L2Camera):
+    """The real V4L2 driver on a :class:`FakeV4L2Node`, with the module's factory calibration
+    (:func:`fake_uvc_calibration`) as a real camera module with an EEPROM would carry."""
+
+    def __init__(self, node: FakeV4L2Node | None = None) -> None:
+        self.node = node or FakeV4L2Node()
+        super().__init__(self.node.path, opener=self.node.open)
+
+    def factory_calibration(self) -> Calibration:
+        return fake_uvc_calibration()

@@ -60,7 +60,7 @@ async def test_read_endpoints(tmp_path: Path) -> None:
         lo, hi = cam.capabilities.exposure_range
         assert st["exposures"]
         assert all(lo <= t <= hi for t in st["exposures"])
-        assert set(st["timings"]) >= {"capture", "fusion", "projection", "sampling", "total"}
+        assert set(st["timings"]) >= {"capture", "prepare", "fusion", "sampling", "total"}
         assert len(st["histogram"]) == 64
         assert sum(st["histogram"]) > 1000  # luminances of the image circle's pixels
         assert st["stale"] is False

@@ -22,6 +22,7 @@ __all__ = ["COMMANDS", "main"]
 COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("device.cli.serve", "run the probe service"),
     "token": ("device.cli.token", "print the API bearer token"),
+    "warm-kernels": ("device.cli.kernels", "compile the service's numba kernels (run once at install)"),
     "fuse": ("device.hdr.cli", "fuse an exposure stack into a linear HDR image"),
     "sample": ("device.sampling.cli", "sample an equirect map into a light set"),
     "run-pipeline": ("device.cli.run_pipeline", "run the capture pipeline on a camera and print per-frame stats"),

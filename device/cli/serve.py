@@ -215,7 +215,14 @@ def main(argv: list[str]) -> int:
     cache = numba_cache_dir(dict(os.environ), state_dir_from(a.state_dir, dict(os.environ)))
     if cache is not None:
         os.environ["NUMBA_CACHE_DIR"] = cache
+    if os.environ.get("NUMBA_CACHE_DIR"):  # the install's compiled kernels, not a recompile
+        from device.cli.kernels import seed_cache
+
+        seed_cache(os.environ["NUMBA_CACHE_DIR"])
     single_blas_thread(os.environ)  # before numpy loads OpenBLAS
+    from device.core.memory import tune_allocator
+
+    tune_allocator()  # before any thread starts: a small board's memory
     if a.port is not None and not 0 <= a.port <= 65535:
         print(f"lightprobe: error: --port must be in [0, 65535], got {a.port}", file=sys.stderr)
         return 2

@@ -81,13 +81,16 @@ class Projector:
         geometry parameters (the last four are kept; they are read-only and shared).
     cache_dir : also keep the tables on disk there (the service uses its state directory), so a
         restart loads them instead of rebuilding (``device.projection.diskcache``).
+    maps : the tables to build (a subset of polar, equirect, healpix; the live pipeline needs
+        only the equirect one, a third of the build).
     """
 
     def __init__(self, calibration: Calibration, *, polar_height: int = 90,
                  equirect_height: int = 256, nside: int = 64, lower: str = "zero",
                  ground_albedo: float = 0.2, horizon_band_deg: float = 5.0,
                  ring_margin_deg: float = 0.5, subdiv: int = 4, cache: bool = True,
-                 cache_dir: str | os.PathLike[str] | None = None) -> None:
+                 cache_dir: str | os.PathLike[str] | None = None,
+                 maps: tuple[str, ...] = ("polar", "equirect", "healpix")) -> None:
         if calibration.fisheye is None:
             raise InputError("calibration has no fisheye section", param="fisheye")
         if lower not in LOWER_POLICIES:
@@ -103,6 +106,10 @@ class Projector:
         self.lower, self.ground_albedo = lower, float(ground_albedo)
         self.horizon_band_deg, self.ring_margin_deg = float(horizon_band_deg), float(ring_margin_deg)
         self.subdiv = int(subdiv)
+        bad = [m for m in maps if m not in ("polar", "equirect", "healpix")]
+        if bad or not maps:
+            raise InputError(f"maps must name some of polar, equirect, healpix; got {maps!r}", param="maps")
+        self.maps = tuple(sorted(set(maps), key=("polar", "equirect", "healpix").index))
         self._build(cache, cache_dir)
 
     # -- construction ---------------------------------------------------------------------------
@@ -110,14 +117,14 @@ class Projector:
         from .diskcache import cache_path, load_built, save_built
 
         key = (self.calibration.id, self.polar_height, self.equirect_height, self.nside,
-               self.ring_margin_deg, self.subdiv)
+               self.ring_margin_deg, self.subdiv, *((self.maps,) if self.maps != ("polar", "equirect", "healpix") else ()))
         built = _TABLE_CACHE.get(key) if cache else None
         path = cache_path(cache_dir, key) if cache_dir is not None else None
         if built is None and path is not None:
             built = load_built(path)
         if built is None:
             built = _build_all(self.calibration, self.polar_height, self.equirect_height,
-                               self.nside, self.ring_margin_deg, self.subdiv)
+                               self.nside, self.ring_margin_deg, self.subdiv, self.maps)
             if path is not None:
                 try:
                     save_built(path, built)
@@ -132,7 +139,8 @@ class Projector:
         self._inv_gain = built.inv_gain
         self.pixel_solid_angle = built.pixel_solid_angle
         self._tables = built.tables
-        self._setup_lower()
+        if "equirect" in self._tables:
+            self._setup_lower()
 
     def _setup_lower(self) -> None:
         """Rows of the equirect map that need the lower-hemisphere fill, and the horizon band."""
@@ -260,6 +268,17 @@ class Projector:
     def solid_angle(self, name: str) -> np.ndarray:
         """Exact solid angle (sr) of each pixel of map ``name`` ("polar", "equirect", "healpix")."""
         return self._tables[name].solid_angle
+
+    def table(self, name: str) -> object:
+        """The CSR table of map ``name`` (``indptr``, ``indices``, ``data`` = geometric weight x
+        pixel gain; read-only), for kernels that fuse while they project
+        (:func:`device.hdr.rolling.frame_to_map`)."""
+        return self._tables[name]
+
+    @property
+    def inverse_gain(self) -> np.ndarray:
+        """1 / pixel gain per fisheye pixel (flat, 0 where unused; read-only)."""
+        return self._inv_gain
 
     def nnz(self, name: str) -> int:
         """Non-zeros of a map's table (the per-frame work is proportional to it)."""

@@ -13,6 +13,7 @@ Bishop, Fienberg & Holland 1975, "Discrete Multivariate Analysis" (iterative pro
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -263,8 +264,10 @@ _TABLE_CACHE_SIZE = 4
 
 
 def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside: int,
-               ring_margin_deg: float, subdiv: int) -> _Built:
-    """Build the three tables (eq. O, gather fallback, balancing, eq. P) from one calibration."""
+               ring_margin_deg: float, subdiv: int,
+               maps: tuple[str, ...] = ("polar", "equirect", "healpix")) -> _Built:
+    """Build the tables of ``maps`` (eq. O, gather fallback, balancing, eq. P) from one
+    calibration."""
     fe = cal.fisheye
     assert fe is not None
     w, h = fe.image_size
@@ -276,10 +279,10 @@ def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside:
         cx, cy = lens_mask.center
         valid0 &= np.hypot(uu - cx, vv - cy) <= lens_mask.radius_px
     gain, valid = _pixel_gain(cal, valid0)
-    grids: dict[str, _Grid] = {"polar": _LatLong(polar_height, 4 * polar_height, 2 * polar_height),
-                               "equirect": _LatLong(equirect_height, 2 * equirect_height,
-                                                    equirect_height),
-                               "healpix": _Healpix(nside)}
+    every: dict[str, Any] = {"polar": lambda: _LatLong(polar_height, 4 * polar_height, 2 * polar_height),
+                             "equirect": lambda: _LatLong(equirect_height, 2 * equirect_height, equirect_height),
+                             "healpix": lambda: _Healpix(nside)}
+    grids: dict[str, _Grid] = {k: every[k]() for k in maps}
     parts: dict[str, list[sp.coo_matrix]] = {k: [] for k in grids}
     omega_pix = np.zeros(m)
     for ch in _subpixel_chunks(fe, valid, subdiv):

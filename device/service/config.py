@@ -60,7 +60,8 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "ws_send_timeout": (float, 5.0, "seconds in [0.1, 60]", _in(0.1, 60.0)),
     },
     "pipeline": {
-        "fps": (float, 10.0, "frames per second in [0.1, 60]", _in(0.1, 60.0)),
+        "fps": (float, 30.0, "light sets per second at most, in [0.1, 60] (the camera paces below it)",
+                _in(0.1, 60.0)),
         "sampler": (str, "q2tree", "one of " + ", ".join(SAMPLERS), lambda v: v in SAMPLERS),
         "light_count": (int, 256, "an integer in [1, 4096]", _in(1, 4096)),
         "max_exposures": (int, 8, "an integer in [1, 16]", _in(1, 16)),

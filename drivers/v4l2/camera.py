@@ -222,6 +222,7 @@ class V4L2Camera(Camera):
                 modes=tuple(self._modes), has_frame_metadata=False,
                 control_latency_frames=self.sensor_latency + self.buffer_count,
                 model=self.card, serial=self.path.rsplit("/", 1)[-1],
+                exposure_step_s=float(getattr(ctl, "exposure_step_s", 0.0)),
             )  # fmt: skip
             gamma = 1.0 if mode.format.is_raw else 1 / 2.2
             self._tracker = SettleTracker(self._caps.control_latency_frames, exposure_s=exp, gain=gain, gamma=gamma)

@@ -82,6 +82,12 @@ class ControlRanges:
         assert self.exposure is not None
         return (max(self.exposure.minimum, 1) * EXPOSURE_UNIT_S, self.exposure.maximum * EXPOSURE_UNIT_S)
 
+    @property
+    def exposure_step_s(self) -> float:
+        """The exposure grid: the control's step in 100 us units."""
+        assert self.exposure is not None
+        return max(self.exposure.step, 1) * EXPOSURE_UNIT_S
+
     def _unity(self) -> int:
         return max(self.gain.default, 1) if self.gain is not None else 1
 

@@ -110,11 +110,13 @@
 
   function showTimings(t) {
     const box = $("timings"); box.textContent = "";
-    const keys = ["capture", "fusion", "projection", "sampling", "total"].filter((k) => k in t);
+    // fusion and projection are one pass per frame (the rolling HDR estimate, in the output map)
+    const labels = { capture: "capture", prepare: "prepare", fusion: "fusion + projection", sampling: "sampling", total: "total" };
+    const keys = Object.keys(labels).filter((k) => k in t);
     const max = Math.max(1e-6, ...keys.map((k) => t[k]));
     for (const k of keys) {
       const row = document.createElement("div"); row.className = "row";
-      row.innerHTML = `<span>${k}</span><span class="track"><span class="fill" style="width:${(100 * t[k] / max).toFixed(1)}%"></span></span><span class="val">${(t[k] * 1e3).toFixed(1)} ms</span>`;
+      row.innerHTML = `<span>${labels[k]}</span><span class="track"><span class="fill" style="width:${(100 * t[k] / max).toFixed(1)}%"></span></span><span class="val">${(t[k] * 1e3).toFixed(1)} ms</span>`;
       box.appendChild(row);
     }
   }

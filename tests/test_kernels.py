@@ -1,0 +1,96 @@
+"""Shipping compiled kernels (issue 14): ``seed_cache`` files the install's numba kernels under
+the layout numba reads with ``NUMBA_CACHE_DIR`` (``<dirname>_<sha1 of the source dir>``), copies
+only what is missing or older, and never leaves half a file; a service started with a fresh
+cache directory compiles nothing. ``tune_allocator`` honours the environment's settings."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from device.cli.kernels import seed_cache, shipped_kernel_dirs
+from device.core import memory
+
+
+def _fake_install(root: Path) -> Path:
+    src = root / "device" / "hdr"
+    (src / "__pycache__").mkdir(parents=True)
+    (src / "rolling.py").write_text("x = 1\n")
+    for name in ("rolling._merge_kernel-1.py312.nbi", "rolling._merge_kernel-1.py312.1.nbc"):
+        (src / "__pycache__" / name).write_bytes(b"kernel " + name.encode())
+    (src / "__pycache__" / "rolling.cpython-312.pyc").write_bytes(b"bytecode")
+    (root / "device" / "empty" / "__pycache__").mkdir(parents=True)  # no kernels: not shipped
+    return src
+
+
+def test_seed_cache_files_kernels_in_numbas_layout_once(tmp_path: Path) -> None:
+    root = tmp_path / "install"
+    src = _fake_install(root)
+    assert shipped_kernel_dirs(root) == [src]
+    cache = tmp_path / "state" / "cache" / "numba"
+    assert seed_cache(cache, root) == 2
+    sub = cache / f"hdr_{hashlib.sha1(str(src.resolve()).encode()).hexdigest()}"
+    assert sorted(p.name for p in sub.iterdir()) == ["rolling._merge_kernel-1.py312.1.nbc",
+                                                     "rolling._merge_kernel-1.py312.nbi"]
+    assert (sub / "rolling._merge_kernel-1.py312.nbi").read_bytes().startswith(b"kernel ")
+    assert seed_cache(cache, root) == 0  # up to date: nothing copied
+    # a newer install replaces the copy; no temporary file is left behind
+    later = time.time() + 10
+    os.utime(src / "__pycache__" / "rolling._merge_kernel-1.py312.nbi", (later, later))
+    assert seed_cache(cache, root) == 1
+    assert not [p for p in sub.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_the_shipped_kernels_load_from_a_fresh_cache_dir_without_compiling(tmp_path: Path) -> None:
+    """numba, pointed at a fresh NUMBA_CACHE_DIR seeded from the install, loads the rolling
+    merge's kernel instead of compiling it (its cache-hit counter says so)."""
+    code = """
+import os, numpy as np
+from device.cli.kernels import seed_cache
+if "NUMBA_CACHE_DIR" in os.environ:
+    seed_cache(os.environ["NUMBA_CACHE_DIR"])
+from device.hdr import rolling
+from types import SimpleNamespace
+n = 4
+t = SimpleNamespace(indptr=np.arange(0, n + 1, dtype=np.int64), indices=np.arange(n, dtype=np.int64),
+                    data=np.ones(n, np.float32))
+lut = np.zeros((257, 3, 4), np.float32); lut[:, :, 0] = np.linspace(0, 1, 257)[:, None]; lut[:, :, 1] = 1
+m = rolling.RollingMerge(n)
+m.update((0.01, 1.0), 0, t, np.ones(n, np.float32), np.ones(n), np.full((n, 3), 100, np.uint8), lut,
+         (np.zeros(3), np.ones(3)))
+print(sum(rolling._merge_kernel.stats.cache_hits.values()), sum(rolling._merge_kernel.stats.cache_misses.values()))
+"""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    # the in-tree cache must exist first (the install's warm-kernels); compile it here if not
+    subprocess.run([sys.executable, "-c", code], env={**os.environ}, check=True, capture_output=True,
+                   cwd=Path(__file__).resolve().parents[1])
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    hits, misses = (int(v) for v in out.stdout.split())
+    assert hits >= 1, out.stdout
+    assert misses == 0, out.stdout
+
+
+def test_tune_allocator_leaves_settings_the_environment_made(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    calls: list[tuple[int, int]] = []
+
+    class FakeLibc:
+        def mallopt(self, param: int, value: int) -> int:
+            calls.append((param, value))
+            return 1
+
+        def malloc_trim(self, pad: int) -> int:
+            return 1
+
+    monkeypatch.setattr(memory, "_libc", lambda: FakeLibc())
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    assert memory.tune_allocator() is True
+    assert calls == [(memory._M_MMAP_THRESHOLD, 256 * 1024), (memory._M_TRIM_THRESHOLD, 1 << 20)]
+    monkeypatch.setattr(memory, "_libc", lambda: None)  # not glibc: nothing to do
+    assert memory.tune_allocator() is False
