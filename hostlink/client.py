@@ -146,7 +146,8 @@ class ProbeClient:
         return _lightset(await self._json("/lights", params or None), self.api + "/lights")
 
     async def hdr_map(self) -> tuple[np.ndarray, dict[str, str]]:
-        """``GET /probe.exr``: the latest equirect radiance map (float32 (H, 2H, 3)) and the
+        """``GET /probe.exr`` (needs the token: a map is a picture of the room, unless the
+        installer set ``service.public_images``): the latest equirect radiance map (float32 (H, 2H, 3)) and the
         probe's metadata headers."""
         body, headers, ctype = await self._get("/probe.exr")
         if ctype != "image/x-exr":

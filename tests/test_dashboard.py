@@ -35,10 +35,18 @@ async def test_dashboard_live_view_lights_status_and_rename(tmp_path: Path, arti
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
             await page.goto(s.url + "/")
-            # live images load, lights are drawn, status shows
+            # without the token the lights are drawn, but the room's pictures are not shown
+            await page.wait_for_function("+document.getElementById('lights').dataset.count === 64",
+                                         timeout=first_frame_s * 1000)
+            await page.wait_for_selector("#image-hint", state="visible", timeout=10_000)
+            assert await page.eval_on_selector("#preview", "e => e.dataset.loaded || ''") == ""
+            # the URL `make run` prints carries the token in its fragment: taken, kept, hidden
+            await page.goto(s.url + "/#token=" + s.token)
             await page.wait_for_function("document.getElementById('pano').dataset.loaded === '1' && "
                                          "document.getElementById('preview').dataset.loaded === '1'",
-                                         timeout=first_frame_s * 1000)
+                                         timeout=60_000)
+            assert "#token" not in page.url
+            assert await page.evaluate("localStorage.getItem('lightprobe.token')") == s.token
             for img in ("pano", "preview"):
                 assert await page.eval_on_selector(f"#{img}", "e => e.naturalWidth") > 0
             await page.wait_for_function("+document.getElementById('lights').dataset.count === 64", timeout=10_000)

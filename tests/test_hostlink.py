@@ -132,8 +132,12 @@ async def test_three_probes_discovered_merged_and_one_stopped(tmp_path: Path) ->
 
 async def test_client_reads_status_lights_map_and_q2tree(tmp_path: Path) -> None:
     async with probe(tmp_path, "probe0000d4", "Desk", mdns=False, fps=2.0) as s, \
-            ProbeClient(s.url) as c:
+            ProbeClient(s.url, token=s.token) as c:
         await _first_frame(c)
+        async with ProbeClient(s.url) as anonymous:  # the map is a picture of the room: token only
+            with pytest.raises(ProbeAuthError):
+                await anonymous.hdr_map()
+            assert len(await anonymous.lights()) == 64  # lighting data is open to the LAN
         st = await c.status()
         assert st["probe"]["id"] == "probe0000d4"
         ls = await c.lights()

@@ -70,7 +70,7 @@ async def test_read_endpoints(tmp_path: Path) -> None:
         # on demand: the requested method and count, energy equal to the map's integral
         for _ in range(20):  # the on-demand set and the EXR must come from the same frame
             code, od = await _get_json(c, s.api + "/lights", params={"method": "pharr", "count": "18"})
-            async with c.get(s.api + "/probe.exr") as r:
+            async with c.get(s.api + "/probe.exr", headers=s.auth) as r:
                 assert r.status == 200
                 assert r.content_type == "image/x-exr"
                 exr = await r.read()
@@ -86,11 +86,11 @@ async def test_read_endpoints(tmp_path: Path) -> None:
         img = read_hdr_image(tmp_path / "p.exr")
         total = np.sum([li["rgb"] for li in od["lights"]], axis=0)
         np.testing.assert_allclose(total, equirect_integral(img), rtol=1e-5)
-        async with c.get(s.api + "/probe.hdr") as r:
+        async with c.get(s.api + "/probe.hdr", headers=s.auth) as r:
             (tmp_path / "p.hdr").write_bytes(await r.read())
         assert read_hdr_image(tmp_path / "p.hdr").shape == img.shape
         for view in ("fisheye", "equirect"):
-            async with c.get(s.api + "/preview.jpg", params={"view": view}) as r:
+            async with c.get(s.api + "/preview.jpg", params={"view": view}, headers=s.auth) as r:
                 assert r.status == 200
                 assert r.content_type == "image/jpeg"
                 jpg = cv2.imdecode(np.frombuffer(await r.read(), np.uint8), cv2.IMREAD_COLOR)
@@ -133,11 +133,13 @@ BAD_REQUESTS: list[tuple[str, str, Any, dict[str, str] | None, int, str | None]]
     ("GET", "/lights?count=100000", None, None, 400, "count"),
     ("GET", "/lights?method=bogus", None, None, 400, "method"),
     ("GET", "/lights?colour=red", None, None, 400, "colour"),
-    ("GET", "/preview.jpg?view=side", None, None, 400, "view"),
+    ("GET", "/preview.jpg?view=side", None, "auth", 400, "view"),
+    ("GET", "/preview.jpg", None, None, 401, "Authorization"),  # a picture of the room
     ("GET", "/nothing/here", None, None, 404, "path"),
     ("GET", "/../../etc/passwd", None, None, 404, "path"),
-    ("POST", "/status", b"{}", None, 401, "Authorization"),  # a write without a token
+    ("POST", "/status", b"{}", None, 405, None),  # routing before auth: no such operation
     ("POST", "/status", b"{}", "auth", 405, None),
+    ("DELETE", "/config", None, None, 405, None),
     ("PUT", "/config", b'{"probe": {"name": "x"}}', {"Authorization": ""}, 401, "Authorization"),
     ("PUT", "/config", b'{"probe": {"name": "x"}}', {"Authorization": "Bearer nope"}, 403, "Authorization"),
     ("PUT", "/config", b"{not json", "auth", 400, "body"),

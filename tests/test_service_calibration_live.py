@@ -62,9 +62,13 @@ async def fresh_lights_on(c: aiohttp.ClientSession, api: str, cal_id: str) -> bo
 def test_parse_start_names_the_field_at_fault() -> None:
     ok = parse_start({"board": BOARD, "targets": {"min_views": 8}})
     assert (ok["cols"], ok["rows"], ok["min_views"], ok["timeout_s"]) == (9, 6, 8, 900.0)
+    # a square board calibrates the intrinsics as well (the CLI takes one too); 6.0 is an integer
+    assert parse_start({"board": {"cols": 7, "rows": 7.0}})["rows"] == 7
+    assert parse_start({"board": BOARD, "exposure_s": None})["exposure_s"] is None  # null: meter once
     for body, param in [({}, "board"), ({"board": {"cols": 1, "rows": 6}}, "board.cols"),
                         ({"board": {"cols": 9, "rows": "6"}}, "board.rows"),
-                        ({"board": {"cols": 7, "rows": 7}}, "board.rows"),
+                        ({"board": BOARD, "targets": None}, "targets"),  # found by schemathesis
+                        ({"board": BOARD, "idle_timeout_s": None}, "idle_timeout_s"),
                         ({"board": {"cols": 9, "rows": 6, "square": -1}}, "board.square"),
                         ({"board": BOARD, "targets": {"coverage": 2}}, "targets.coverage"),
                         ({"board": BOARD, "timeout_s": float("nan")}, "timeout_s"),
@@ -155,7 +159,7 @@ async def test_live_calibration_over_http(tmp_path: Path, monkeypatch: pytest.Mo
         assert p["rms_px"] <= 0.5
         assert len(p["coverage"]["grid"]) == 4
         assert p["exposure_s"] > 0
-        async with c.get(live + "/frame.jpg") as r:
+        async with c.get(live + "/frame.jpg", headers=s.auth) as r:
             assert r.status == 200
             assert (await r.read())[:2] == b"\xff\xd8"
         async with c.post(live + "/commit", headers=s.auth) as r:

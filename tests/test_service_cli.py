@@ -157,9 +157,9 @@ async def test_serve_auto_without_hardware_stays_up_and_serves_no_lights(tmp_pat
         import pytest
 
         pytest.skip("this machine has camera hardware")
-    p, url, _ = start_serve(tmp_path / "state", "--camera", "auto")
+    p, url, token = start_serve(tmp_path / "state", "--camera", "auto")
     try:
-        async with aiohttp.ClientSession() as c:
+        async with aiohttp.ClientSession(headers={"Authorization": f"Bearer {token}"}) as c:
             while True:  # the first attempt runs in the background after the API listens
                 async with c.get(url + "/api/v1/status") as r:
                     assert r.status == 200

@@ -92,7 +92,7 @@ ENDPOINTS = ("/probe.exr", "/probe.hdr", "/preview.jpg", "/preview.jpg?view=equi
              "/lights?count=4096&method=pharr", "/lights", "/status", "/config")
 
 
-def _client_pass(api: str, port: int, rounds: int) -> None:
+def _client_pass(api: str, port: int, rounds: int, token: str = "") -> None:
     """HTTP requests and a WebSocket reader from another thread, so that client work does not
     run on (and is not blamed on) the service's loop."""
     import urllib.request
@@ -103,7 +103,8 @@ def _client_pass(api: str, port: int, rounds: int) -> None:
     try:
         for _ in range(rounds):
             for path in ENDPOINTS:
-                with urllib.request.urlopen(api + path, timeout=10) as r:
+                req = urllib.request.Request(api + path, headers={"Authorization": f"Bearer {token}"} if token else {})
+                with urllib.request.urlopen(req, timeout=10) as r:
                     assert r.status == 200, path
                     r.read()
                 _read_ws_text(raw)
@@ -132,9 +133,9 @@ async def test_no_blocking_calls_on_the_event_loop(tmp_path: Path, monkeypatch: 
     async with running_service(cfg) as s, aiohttp.ClientSession() as c:
         async with c.ws_connect(s.api + "/stream") as ws:
             await ws.receive(timeout=60)
-        await asyncio.to_thread(_client_pass, s.api, s.port, 1)
+        await asyncio.to_thread(_client_pass, s.api, s.port, 1, s.token)
         measuring = True
-        await asyncio.to_thread(_client_pass, s.api, s.port, 3)
+        await asyncio.to_thread(_client_pass, s.api, s.port, 3, s.token)
         measuring = False
     assert not slow, slow
 

@@ -74,7 +74,10 @@ def load_service_config(config_arg: str | None, state_dir: Path, env: dict[str, 
 def _bind(host: str, port: int) -> socket.socket:
     from device.core.errors import InputError
 
-    infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise InputError(f"service.host {host!r} does not resolve: {e.strerror}", param="service.host") from e
     family, _, _, _, addr = infos[0]
     s = socket.socket(family, socket.SOCK_STREAM)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -128,22 +131,50 @@ def single_blas_thread(environ: Any) -> None:
     environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+def _under_systemd(env: dict[str, str]) -> bool:
+    """Started by systemd (its output goes to the journal)."""
+    return bool(env.get("INVOCATION_ID") or env.get("JOURNAL_STREAM"))
+
+
+def _token_or_error(state_dir: Path, load: Any) -> str:
+    """The token, or an InputError naming the state dir and the cause (a full disk, a
+    read-only directory), not a traceback."""
+    from device.core.errors import InputError
+
+    try:
+        return str(load(state_dir))
+    except OSError as e:
+        raise InputError(f"state dir {state_dir}: cannot create the API token: {e.strerror or e}",
+                         param="--state-dir") from e
+
+
 async def serve(a: argparse.Namespace) -> int:
     from aiohttp import web
 
     from device.cli.bootstrap import camera_factory, pipeline_factory
+    from device.core.statelock import StateDirLock
     from device.service.app import create_app
     from device.service.auth import load_or_create_token
-    from device.service.mdns import stable_probe_id
+    from device.service.guard import (
+        ConnectionGuard,
+        GuardedSite,
+        install_log_limits,
+        raise_fd_limit,
+    )
+    from device.service.mdns import camera_identity, stable_probe_id
     from device.service.notify import Notifier
+    from device.service.state import STATE
 
     env = dict(os.environ)
     state_dir = state_dir_from(a.state_dir, env)
+    lock = StateDirLock(state_dir)
+    lock.acquire()  # one service per state dir: a second one exits 2 naming the owner
     cfg = load_service_config(a.config, state_dir, env)
     host = a.host or cfg.get("service", "host")
     port = a.port if a.port is not None else cfg.get("service", "port")
-    token = await asyncio.to_thread(load_or_create_token, state_dir)
-    probe_id = cfg.get("probe", "id") or await asyncio.to_thread(stable_probe_id)
+    token = await asyncio.to_thread(_token_or_error, state_dir, load_or_create_token)
+    probe_id = cfg.get("probe", "id") or await asyncio.to_thread(
+        stable_probe_id, "/etc/machine-id", camera_identity(a.camera, state_dir))
     sock = _bind(host, port)
     port = sock.getsockname()[1]
     notifier = Notifier(env)
@@ -151,16 +182,25 @@ async def serve(a: argparse.Namespace) -> int:
     app = create_app(cfg, make_camera, pipeline_factory(state_dir, probe_id),
                      token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
                      backoff=(a.backoff_initial, a.backoff_max))
-    runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=0.5, access_log=None)
+    guard = ConnectionGuard(max_connections=min(int(cfg.get("service", "max_connections")), raise_fd_limit()),
+                            max_per_peer=int(cfg.get("service", "max_connections_per_peer")),
+                            header_timeout=float(cfg.get("service", "header_timeout")),
+                            body_timeout=float(cfg.get("service", "body_timeout")))
+    app[STATE].guard = guard
+    install_log_limits()
+    runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=0.5, access_log=None,
+                           keepalive_timeout=float(cfg.get("service", "keepalive_timeout")))
     await runner.setup()
-    await web.SockSite(runner, sock).start()
+    await GuardedSite(runner, sock, guard).start()
     shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     url = f"http://{shown}:{port}/" if ":" not in shown else f"http://[{shown}]:{port}/"
-    print(f"lightprobe: dashboard {url}", flush=True)
-    print(f"lightprobe: API token {token}  (state dir {state_dir.resolve()})", flush=True)
+    if _under_systemd(env):  # the journal is readable by more people than the token should be
+        print(f"lightprobe: dashboard {url}  (API token: `lightprobe token`)", flush=True)
+    else:
+        print(f"lightprobe: dashboard {url}  (camera images need the token: {url}#token={token})", flush=True)
+        print(f"lightprobe: API token {token}  (state dir {state_dir.resolve()})", flush=True)
     notifier.ready(f"serving on {url}")
     from device.core.errors import InputError
-    from device.service.state import STATE
     from drivers.base import CameraError
 
     try:  # made off the loop while the API already answers; a bad --camera/--scene still exits 2

@@ -50,20 +50,96 @@ def _token_from(request: web.Request) -> str | None:
     return f"Bearer {q}" if q and request.method == "GET" else None
 
 
+# Camera images and maps of the room: private unless the installer opens them (service.public_images)
+PRIVATE_PATHS = frozenset({"/api/v1/preview.jpg", "/api/v1/probe.exr", "/api/v1/probe.hdr",
+                           "/api/v1/calibration/live/frame.jpg"})
+
+
+def needs_token(st: ServiceState, method: str, path: str) -> bool:
+    """Writes always; camera images and maps unless opened in config; other reads (light sets,
+    status, config) only when ``service.require_token_for_reads``."""
+    if not path.startswith("/api/v1/") or path == "/api/v1/healthz" or method == "OPTIONS":
+        return False
+    if method not in ("GET", "HEAD"):
+        return True
+    if path in PRIVATE_PATHS and not st.config.get("service", "public_images"):
+        return True
+    return bool(st.config.get("service", "require_token_for_reads"))
+
+
 @web.middleware
 async def auth_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
     st = request.app[STATE]
-    path = request.path
-    if path.startswith("/api/v1/") and path != "/api/v1/healthz" and request.method != "OPTIONS":
-        write = request.method not in ("GET", "HEAD")
-        if write or st.config.get("service", "require_token_for_reads"):
-            header = _token_from(request)
-            if header is None:
-                raise ApiError(401, "missing bearer token (Authorization: Bearer <token>; "
-                               "see `lightprobe token`)", param="Authorization",
-                               headers={"WWW-Authenticate": 'Bearer realm="lightprobe"'})
-            if not check_bearer(header, st.token):
-                raise ApiError(403, "wrong bearer token", param="Authorization")
+    if request.match_info.http_exception is not None:
+        return await handler(request)  # routing first: 404 / 405 for what does not exist
+    if needs_token(st, request.method, request.path):
+        header = _token_from(request)
+        if header is None:
+            raise ApiError(401, "missing bearer token (Authorization: Bearer <token>; "
+                           "see `lightprobe token`)", param="Authorization",
+                           headers={"WWW-Authenticate": 'Bearer realm="lightprobe"'})
+        peer = request.remote or "?"
+        retry = st.auth_failures.blocked(peer)  # a peer guessing tokens waits, right or wrong
+        if retry:
+            raise ApiError(429, "too many failed authentications from this address; try again later",
+                           param="Authorization", headers={"Retry-After": str(retry)})
+        if not check_bearer(header, st.token):
+            st.auth_failures.failed(peer, request.method, request.path)
+            raise ApiError(403, "wrong bearer token", param="Authorization")
+    return await handler(request)
+
+
+def _host_name(header: str) -> str:
+    """The host part of a Host header, lower-cased, without port, brackets or a trailing dot."""
+    h = header.strip().lower()
+    if h.startswith("["):
+        return h[1:h.find("]")] if "]" in h else h
+    if h.count(":") == 1:
+        h = h.split(":", 1)[0]
+    return h.rstrip(".")
+
+
+def _is_ip(name: str) -> bool:
+    import ipaddress
+
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+def allowed_host_names(st: ServiceState, listen_host: str) -> set[str]:
+    """Names a request may address the probe by: localhost, the machine's host name (plain and
+    .local), the probe's mDNS host name, the listen address's name, and ``service.allowed_hosts``."""
+    import socket
+
+    names = {"localhost", "localhost.localdomain"}
+    host = socket.gethostname().lower().rstrip(".")
+    if host:
+        names |= {host, host.split(".")[0], host.split(".")[0] + ".local"}
+    names.add(f"lightprobe-{st.probe_id[:12]}.local")
+    if listen_host and not _is_ip(listen_host):
+        names.add(listen_host.lower().rstrip("."))
+    names |= {str(a).lower().rstrip(".") for a in st.config.get("service", "allowed_hosts")}
+    return names
+
+
+@web.middleware
+async def host_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """421 for a Host the probe does not answer to: a page on another site that rebinds its name
+    to the probe's address must not read the probe (DNS rebinding). Addresses are always
+    fine (a browser that was given the address is on the probe's own origin)."""
+    header = request.headers.get("Host")
+    if header:
+        name = _host_name(header)
+        if not _is_ip(name):
+            st = request.app[STATE]
+            if st.allowed_hosts is None:
+                st.allowed_hosts = allowed_host_names(st, request.app[HOST])
+            if name not in st.allowed_hosts:
+                raise ApiError(421, f"this probe does not answer to host {name[:64]!r}: use its address, "
+                               "its .local name, or add the name to service.allowed_hosts", param="Host")
     return await handler(request)
 
 
@@ -217,7 +293,7 @@ async def _notify_ctx(app: web.Application) -> AsyncIterator[None]:
     task = None
     interval = st.notifier.watchdog_interval
     if interval:
-        task = asyncio.create_task(_watchdog(st, interval), name="sd-watchdog")
+        task = asyncio.create_task(_watchdog(st, interval, app[HOST], app[PORT]), name="sd-watchdog")
     try:
         yield
     finally:
@@ -228,14 +304,42 @@ async def _notify_ctx(app: web.Application) -> AsyncIterator[None]:
                 await task
 
 
-async def _watchdog(st: ServiceState, interval: float) -> None:
-    """WATCHDOG=1 every ``interval`` s while the loop makes progress: frames, or reconnect
-    attempts while the camera is away. A ``step()`` that hangs stops the pings."""
+async def serves_itself(host: str, port: int, wait_s: float = 2.0) -> bool:
+    """True when the service answers its own ``/healthz`` over a real connection (any HTTP
+    status: the loop accepts, parses and answers). A loop that is alive but cannot accept (file
+    descriptors exhausted) or is too busy to answer fails it."""
+    target = "127.0.0.1" if host in ("0.0.0.0", "") else ("::1" if host == "::" else host)
+    writer = None
+    try:
+        async with asyncio.timeout(wait_s):
+            reader, writer = await asyncio.open_connection(target, port)
+            writer.write(b"GET /api/v1/healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+            await writer.drain()
+            line = await reader.readline()
+    except (OSError, TimeoutError):
+        return False
+    finally:
+        if writer is not None:
+            writer.close()
+    return line.startswith(b"HTTP/1.")
+
+
+async def _watchdog(st: ServiceState, interval: float, host: str, port: int) -> None:
+    """WATCHDOG=1 every ``interval`` s while the loop makes progress (frames, or reconnect
+    attempts while the camera is away) and the service answers its own ``/healthz`` over the
+    network. A ``step()`` that hangs, or a server that cannot accept, stops the pings, and
+    systemd restarts the service."""
     last_status = ""
+    misses = 0
     while True:
         fps = float(st.config.get("pipeline", "fps"))
-        if st.runner.alive(within=max(2 * interval, 5.0 / fps) + st.runner.backoff_max):
+        alive = st.runner.alive(within=max(2 * interval, 5.0 / fps) + st.runner.backoff_max)
+        served = await serves_itself(host, port, wait_s=min(2.0, interval))
+        misses = 0 if served else misses + 1
+        if alive and misses < 2:
             st.notifier.watchdog()
+        elif misses == 2:
+            log.error("the service does not answer its own /healthz on port %d: stopping the watchdog pings", port)
         status = f"{st.runner.camera_state}, {st.runner.frames} frames, {st.runner.fps:.1f} fps"
         if status.split(",")[0] != last_status:
             st.notifier.status(status)
@@ -256,7 +360,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
 
     app = web.Application(
         client_max_size=int(config.get("service", "client_max_size")),
-        middlewares=[headers_middleware, cors_middleware, error_middleware, auth_middleware],
+        middlewares=[headers_middleware, cors_middleware, error_middleware, host_middleware, auth_middleware],
     )
     app[PORT] = int(port if port is not None else config.get("service", "port"))
     app[HOST] = str(host if host is not None else config.get("service", "host"))

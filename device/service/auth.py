@@ -1,11 +1,14 @@
 """The API bearer token: created at first start in the state directory (mode 0600).
 
-Write endpoints always need ``Authorization: Bearer <token>``; reads need it only when
-``service.require_token_for_reads`` is set. Comparison is constant-time.
+Write endpoints always need ``Authorization: Bearer <token>``; so do camera images and maps of
+the room unless ``service.public_images`` opens them; other reads need it only when
+``service.require_token_for_reads`` is set (``device.service.app.needs_token``). Comparison is
+constant-time.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import os
 import secrets
@@ -38,11 +41,16 @@ def load_or_create_token(state_dir: str | os.PathLike[str]) -> str:
     tmp = d / f".{TOKEN_FILE}.{os.getpid()}.tmp"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     try:
-        os.fchmod(fd, 0o600)
-        os.write(fd, (tok + "\n").encode("ascii"))
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+        try:
+            os.fchmod(fd, 0o600)
+            os.write(fd, (tok + "\n").encode("ascii"))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        with contextlib.suppress(OSError):  # a full disk: leave nothing behind
+            os.unlink(tmp)
+        raise
     try:
         os.link(tmp, p)  # fails if another process created it first: keep theirs
     except FileExistsError:

@@ -2,7 +2,9 @@
 
 The file has four tables (every key optional; missing keys take the defaults below)::
 
-    [service]   host, port, require_token_for_reads, cors_origins, client_max_size, ws_send_timeout
+    [service]   host, port, require_token_for_reads, public_images, allowed_hosts, cors_origins,
+                client_max_size, ws_send_timeout, max_connections, max_connections_per_peer,
+                header_timeout, body_timeout, keepalive_timeout
     [pipeline]  fps, sampler, light_count, max_exposures, equirect_height, nside
     [probe]     name, id, model
     [mdns]      enabled, interfaces
@@ -15,6 +17,7 @@ one. Validation raises :class:`device.core.errors.InputError` naming the ``table
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import os
@@ -49,15 +52,38 @@ def _in(lo: float, hi: float) -> Any:
     return lambda v: lo <= v <= hi
 
 
+_LABEL = re.compile(r"^(?!-)[A-Za-z0-9-]{1,63}(?<!-)$")
+
+
+def _is_host(v: str) -> bool:
+    """An IP address or a DNS name (RFC 1123 labels); whether it resolves is checked where it
+    is used (PUT /config resolves it, ``serve`` names it if it does not)."""
+    import ipaddress
+
+    with contextlib.suppress(ValueError):
+        ipaddress.ip_address(v)
+        return True
+    name = v[:-1] if v.endswith(".") else v
+    return 0 < len(name) <= 253 and all(_LABEL.match(p) for p in name.split("."))
+
+
 SCHEMA: dict[str, dict[str, _Spec]] = {
     "service": {
-        "host": (str, "127.0.0.1", "a host name or address", lambda v: 0 < len(v) <= 255),
+        "host": (str, "127.0.0.1", "an IP address or a host name", _is_host),
         "port": (int, 8080, "an integer in [0, 65535]", _in(0, 65535)),
         "require_token_for_reads": (bool, False, "true or false", None),
+        "public_images": (bool, False, "true or false (camera images and maps readable without the token)", None),
+        "allowed_hosts": (list, [], "a list of host names the probe answers to besides its own",
+                          lambda v: len(v) <= 32 and all(isinstance(s, str) and _is_host(s) for s in v)),
         "cors_origins": (list, [], "a list of origin strings (empty = CORS off)",
                          lambda v: all(isinstance(s, str) and len(s) < 256 for s in v) and len(v) <= 32),
         "client_max_size": (int, 64 * 1024, "an integer in [1024, 16777216] bytes", _in(1024, 1 << 24)),
         "ws_send_timeout": (float, 5.0, "seconds in [0.1, 60]", _in(0.1, 60.0)),
+        "max_connections": (int, 512, "an integer in [16, 65536] (capped below the fd limit)", _in(16, 65536)),
+        "max_connections_per_peer": (int, 64, "an integer in [1, 65536]", _in(1, 65536)),
+        "header_timeout": (float, 10.0, "seconds in [0.5, 300]", _in(0.5, 300.0)),
+        "body_timeout": (float, 30.0, "seconds in [0.5, 600]", _in(0.5, 600.0)),
+        "keepalive_timeout": (float, 15.0, "seconds in [1, 3600]", _in(1.0, 3600.0)),
     },
     "pipeline": {
         "fps": (float, 30.0, "light sets per second at most, in [0.1, 60] (the camera paces below it)",
@@ -65,8 +91,11 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "sampler": (str, "q2tree", "one of " + ", ".join(SAMPLERS), lambda v: v in SAMPLERS),
         "light_count": (int, 256, "an integer in [1, 4096]", _in(1, 4096)),
         "max_exposures": (int, 8, "an integer in [1, 16]", _in(1, 16)),
-        "equirect_height": (int, 256, "an integer in [16, 2048]", _in(16, 2048)),
-        "nside": (int, 64, "a power of two in [1, 1024]", lambda v: 1 <= v <= 1024 and v & (v - 1) == 0),
+        # map sizes a small board holds (tables, rolling estimate, samplers), measured on the
+        # simulator 2026-12-02: 256 / 64 -> ~310 MB RSS (peak ~380); 512 / 128 -> ~480 MB (peak
+        # ~810 while the table is built); 1024 / 256 -> ~880 MB (peak 2.4 GB): refused
+        "equirect_height": (int, 256, "an integer in [16, 512]", _in(16, 512)),
+        "nside": (int, 64, "a power of two in [1, 128]", lambda v: 1 <= v <= 128 and v & (v - 1) == 0),
     },
     "probe": {
         "name": (str, "", "up to 63 bytes of UTF-8 without control characters, not starting with '.'",
@@ -83,8 +112,12 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
     },
 }
 
-# Keys that take effect only after a restart (the listening socket, the mDNS sockets).
+# Keys that take effect only after a restart (the listening socket, the mDNS sockets, the map
+# geometry). A PUT saves them and reports them pending; the running service keeps the values it
+# started with until it restarts.
 RESTART_KEYS = {("service", "host"), ("service", "port"), ("service", "client_max_size"),
+                ("service", "max_connections"), ("service", "max_connections_per_peer"),
+                ("service", "header_timeout"), ("service", "body_timeout"), ("service", "keepalive_timeout"),
                 ("mdns", "enabled"), ("mdns", "interfaces"), ("pipeline", "equirect_height"),
                 ("pipeline", "nside"), ("pipeline", "max_exposures")}
 
@@ -114,16 +147,39 @@ class ServiceConfig:
             data[t].update(kv)
         return ServiceConfig(data, self.path)
 
+    def running(self, current: ServiceConfig) -> ServiceConfig:
+        """This (saved) config as the running service applies it: the restart-only keys keep
+        ``current``'s values."""
+        data = copy.deepcopy(self.data)
+        for t, k in RESTART_KEYS:
+            data[t][k] = copy.deepcopy(current.data[t][k])
+        return ServiceConfig(data, self.path)
+
+    def pending(self, running: ServiceConfig) -> dict[str, dict[str, Any]]:
+        """The restart-only keys whose saved value differs from the running one."""
+        out: dict[str, dict[str, Any]] = {}
+        for t, k in sorted(RESTART_KEYS):
+            if self.data[t][k] != running.data[t][k]:
+                out.setdefault(t, {})[k] = copy.deepcopy(self.data[t][k])
+        return out
+
 
 def _coerce(table: str, key: str, value: Any) -> Any:
     """Check one value against the schema; return it in its canonical type."""
     typ, _default, desc, check = SCHEMA[table][key]
     param = f"{table}.{key}"
+    if typ is int and isinstance(value, float) and value.is_integer():  # JSON's 256.0 is the integer 256
+        value = int(value)
     ok_type = isinstance(value, typ) and not (typ is int and isinstance(value, bool))
     if typ is float and isinstance(value, int) and not isinstance(value, bool):
         value, ok_type = float(value), True
     if not ok_type:
         raise InputError(f"{param} must be {desc}, got {type(value).__name__}", param=param)
+    for text in ([value] if typ is str else (value if typ is list else [])):
+        try:
+            str(text).encode("utf-8")
+        except UnicodeEncodeError:
+            raise InputError(f"{param} must be valid UTF-8 text (no lone surrogates)", param=param) from None
     if typ is float and not math.isfinite(value):
         raise InputError(f"{param} must be {desc}, got {value!r}", param=param)
     if check is not None and not check(value):
@@ -157,9 +213,12 @@ def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
     if not p.exists():
         return ServiceConfig(path=p)
     try:
-        raw = tomllib.loads(p.read_text(encoding="utf-8"))
+        text = p.read_text(encoding="utf-8")
+        raw = tomllib.loads(text)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise InputError(f"{p}: cannot read config: {e}", param=str(p)) from e
+    if not text.strip():  # a truncated write or a mistake, not "use the defaults"
+        raise InputError(f"{p}: config file is empty (delete it to start from the defaults)", param=str(p))
     try:
         return ServiceConfig(path=p).with_patch(raw)
     except InputError as e:

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from zeroconf import ServiceInfo
     from zeroconf.asyncio import AsyncZeroconf
 
-__all__ = ["HTTP_TYPE", "SERVICE_TYPE", "Advertiser", "MdnsInfo", "stable_probe_id", "txt_records"]
+__all__ = ["HTTP_TYPE", "SERVICE_TYPE", "Advertiser", "MdnsInfo", "camera_identity", "stable_probe_id", "txt_records"]
 
 log = logging.getLogger(__name__)
 
@@ -36,16 +36,31 @@ SERVICE_TYPE = "_lightprobe._tcp.local."
 HTTP_TYPE = "_http._tcp.local."
 
 
-def stable_probe_id(machine_id_path: str | Path = "/etc/machine-id") -> str:
+def stable_probe_id(machine_id_path: str | Path = "/etc/machine-id", identity: str = "") -> str:
     """12 hex digits that stay the same across restarts: a hash of the machine-id (never the raw
-    id, which systemd asks not to expose), else of the primary MAC address."""
+    id, which systemd asks not to expose), else of the primary MAC address, and of ``identity``,
+    what tells this probe from another on the same machine (:func:`camera_identity`)."""
     try:
         mid = Path(machine_id_path).read_text(encoding="ascii").strip()
     except OSError:
         mid = ""
     if not mid:
         mid = f"mac:{uuid.getnode():012x}"
-    return hashlib.sha256(("lightprobe:" + mid).encode()).hexdigest()[:12]
+    key = "lightprobe:" + mid + (f"|{identity}" if identity else "")
+    return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
+def camera_identity(camera_spec: str, state_dir: Path) -> str:
+    """What makes a probe unique on its machine, stable across restarts: a camera spec that
+    names one device by a stable path (``v4l2:/dev/v4l/by-id/...``, ``uvc:VID:PID:SERIAL``), else
+    the state directory (two services on one machine cannot share one: it is locked), which is
+    the simulator's identity and that of a unit's only camera."""
+    spec = camera_spec.strip()
+    if spec.startswith("v4l2:/dev/v4l/by-id/") or spec.startswith("v4l2:/dev/v4l/by-path/"):
+        return spec
+    if spec.startswith("uvc:") and spec.count(":") >= 3:  # uvc:VID:PID:SERIAL
+        return spec
+    return f"state:{state_dir.resolve()}"
 
 
 @dataclass

@@ -7,6 +7,7 @@ this module; it imports neither, so the service has no import circle.
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 import weakref
@@ -20,9 +21,49 @@ from device.service.config import ServiceConfig
 from device.service.notify import Notifier
 from device.service.runner import Runner
 
-__all__ = ["HOST", "PORT", "STATE", "VERSION", "ServiceState"]
+__all__ = ["HOST", "PORT", "STATE", "VERSION", "AuthFailures", "ServiceState"]
 
 VERSION = "0.1.0"
+
+log = logging.getLogger("lightprobe.service.auth")
+
+
+@dataclass
+class AuthFailures:
+    """Failed authentications per peer: logged (the first, then once per window with a count),
+    and after ``limit`` failures within ``window`` seconds the peer is answered 429 until the
+    window ends. Monotonic clock."""
+
+    limit: int = 10
+    window: float = 60.0
+    _peers: dict[str, tuple[float, int]] = field(default_factory=dict)
+    _logged: dict[str, float] = field(default_factory=dict)
+
+    def failed(self, peer: str, method: str, path: str) -> None:
+        now = time.monotonic()
+        start, n = self._peers.get(peer, (now, 0))
+        if now - start > self.window:
+            start, n = now, 0
+        self._peers[peer] = (start, n + 1)
+        if now - self._logged.get(peer, -1e18) >= self.window:
+            self._logged[peer] = now
+            log.warning("authentication failed from %s (%s %s; %d in the last %.0f s)", peer, method,
+                        path[:80], n + 1, self.window)
+        if len(self._peers) > 4096:  # a flood of addresses: forget the oldest
+            for k in sorted(self._peers, key=lambda k: self._peers[k][0])[:2048]:
+                self._peers.pop(k, None)
+                self._logged.pop(k, None)
+
+    def blocked(self, peer: str) -> int:
+        """Seconds until ``peer`` may try again (0: now)."""
+        hit = self._peers.get(peer)
+        if hit is None or hit[1] < self.limit:
+            return 0
+        left = self.window - (time.monotonic() - hit[0])
+        if left <= 0:
+            self._peers.pop(peer, None)
+            return 0
+        return max(1, int(left + 0.999))
 
 
 @dataclass
@@ -41,11 +82,20 @@ class ServiceState:
     ws_frames_skipped: int = 0
     config_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     version: str = VERSION
-    started: float = field(default_factory=time.time)
+    started: float = field(default_factory=time.monotonic)  # monotonic: intervals only
     make_camera: Callable[[], Any] | None = None
     mdns_task: asyncio.Task[None] | None = None  # the mDNS registration while it runs
+    auth_failures: AuthFailures = field(default_factory=AuthFailures)
+    allowed_hosts: set[str] | None = None  # Host names answered (computed on first request)
+    pending: dict[str, dict[str, Any]] = field(default_factory=dict)  # saved, applied at restart
+    saved: ServiceConfig | None = None  # the config as saved (restart-only keys included), if it differs
+    guard: Any = None  # device.service.guard.ConnectionGuard of the listening socket, if any
     _camera_lock: threading.Lock = field(default_factory=threading.Lock)
     _camera_error: Exception | None = None
+
+    def saved_config(self) -> ServiceConfig:
+        """The config as saved on disk: the running one plus any pending restart-only values."""
+        return self.saved if self.saved is not None else self.config
 
     def camera_or_make(self) -> Any:
         """The camera, made now if nobody made it yet (blocking: call from a worker thread).

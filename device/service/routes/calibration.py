@@ -108,12 +108,22 @@ DESK: web.AppKey[Desk] = web.AppKey("lightprobe_calibration_desk", Desk)
 
 
 # ---- request parsing ------------------------------------------------------------------------------
+def required_if_present(key: str) -> bool:
+    """Fields that take no null (only ``exposure_s`` may be null: meter once)."""
+    return key != "exposure_s"
+
+
 def _number(d: dict[str, Any], key: str, prefix: str, lo: float, hi: float, default: float | None,
             integer: bool = False) -> float | None:
     name = f"{prefix}{key}"
     v = d.get(key, default)
     if v is None:
+        if default is not None or (key in d and required_if_present(key)):
+            kind = "an integer" if integer else "a number"
+            raise InputError(f"{name} must be {kind} in [{lo:g}, {hi:g}], got null", param=name)
         return None
+    if integer and isinstance(v, float) and v.is_integer():  # JSON's 6.0 is the integer 6
+        v = int(v)
     ok = isinstance(v, int) if integer else isinstance(v, int | float)
     if isinstance(v, bool) or not ok or not math.isfinite(float(v)) or not lo <= float(v) <= hi:
         kind = "an integer" if integer else "a number"
@@ -123,7 +133,7 @@ def _number(d: dict[str, Any], key: str, prefix: str, lo: float, hi: float, defa
 
 def _object(body: dict[str, Any], key: str, required: bool = False) -> dict[str, Any]:
     v = body.get(key)
-    if v is None and not required:
+    if v is None and not required and key not in body:
         return {}
     if not isinstance(v, dict):
         raise InputError(f"{key} must be an object", param=key)
@@ -143,9 +153,6 @@ def parse_start(body: Any) -> dict[str, Any]:
     rows = int(_number(b, "rows", "board.", 2, 64, None, integer=True) or 0)
     if not cols or not rows:
         raise InputError("board needs cols and rows (inner corners)", param="board.cols" if not cols else "board.rows")
-    if cols == rows:
-        raise InputError("board.cols and board.rows must differ (a square board has no orientation)",
-                         param="board.rows")
     return {
         "cols": cols, "rows": rows, "square": _number(b, "square", "board.", 1e-6, 1e4, 1.0),
         "min_views": int(_number(t, "min_views", "targets.", 3, 200, 6, integer=True) or 6),

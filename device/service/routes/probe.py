@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import logging
 from pathlib import Path
@@ -17,7 +18,7 @@ import numpy as np
 from aiohttp import WSMsgType, web
 
 from device.core.errors import InputError
-from device.service.config import RESTART_KEYS, SAMPLERS, save_config
+from device.service.config import SAMPLERS, save_config
 from device.service.encode import encode_hdr, encode_jpeg
 from device.service.errors import ApiError
 from device.service.state import STATE, ServiceState
@@ -75,7 +76,9 @@ def _check_query(request: web.Request, allowed: set[str]) -> None:
 async def healthz(request: web.Request) -> web.Response:
     st = request.app[STATE]
     fps = float(st.config.get("pipeline", "fps"))
-    ok = st.runner.progressing(max(5.0 / fps, 5.0))
+    # healthy: frames flow, or a technician's calibration session holds the camera and works
+    ok = st.runner.progressing(max(5.0 / fps, 5.0)) or (
+        st.runner.camera_state == "calibrating" and st.runner.alive(30.0))
     body = {"ok": ok, "camera": st.runner.camera_state, "stale": st.runner.stale, "frames": st.runner.frames}
     return web.json_response(body, status=200 if ok else 503)
 
@@ -92,6 +95,8 @@ async def status(request: web.Request) -> web.Response:
         "websocket": {"clients": len(st.websockets), "dropped": st.ws_dropped,
                       "frames_skipped": st.ws_frames_skipped},
         "mdns": {"advertised": st.advertiser.registered_names if st.advertiser is not None else []},
+        "connections": st.guard.stats() if st.guard is not None else None,
+        "pending_restart": sorted(f"{t}.{k}" for t, kv in st.pending.items() for k in kv),
     })
     return web.json_response(body)
 
@@ -109,6 +114,9 @@ async def lights(request: web.Request) -> web.Response:
         return web.Response(text=st.runner.lights_text, content_type="application/json")
     _current(st)
     pipeline = st.runner.pipeline
+    if pipeline is None and st.runner.camera_state == "calibrating":
+        raise ApiError(409, "a calibration session holds the camera: on-demand sampling resumes when it ends "
+                       "(the published set is served meanwhile, marked stale)", param="camera")
     if pipeline is None:
         raise ApiError(503, "the camera is reconnecting: on-demand sampling needs a live pipeline",
                        param="camera", headers={"Retry-After": "1"})
@@ -157,15 +165,42 @@ async def preview(request: web.Request) -> web.Response:
 
 async def get_config(request: web.Request) -> web.Response:
     st = request.app[STATE]
-    return web.json_response({"config": st.config.to_json(), "path": str(st.config.path) if st.config.path else None})
+    return web.json_response({"config": st.config.to_json(), "pending": st.pending,
+                              "path": str(st.config.path) if st.config.path else None})
+
+
+_STORAGE_ERRORS = {errno.ENOSPC: "ENOSPC: no space left on the device",
+                   errno.EDQUOT: "EDQUOT: disk quota exceeded",
+                   errno.EROFS: "EROFS: the state directory is read-only",
+                   errno.EACCES: "EACCES: the state directory is not writable",
+                   errno.EPERM: "EPERM: the state directory is not writable",
+                   errno.EIO: "EIO: input/output error on the storage"}
+
+
+async def _resolves(host: str) -> bool:
+    import socket
+
+    try:
+        async with asyncio.timeout(3.0):
+            await asyncio.get_running_loop().getaddrinfo(host, None, type=socket.SOCK_STREAM,
+                                                         flags=socket.AI_PASSIVE)
+    except (OSError, TimeoutError):
+        return False
+    return True
 
 
 async def put_config(request: web.Request) -> web.Response:
+    """Validate, save (atomically), apply what applies live. Restart-only keys are saved and
+    reported pending; the running service keeps its values for them until it restarts."""
     st = request.app[STATE]
     if request.content_type != "application/json":
         raise InputError(f"Content-Type must be application/json, got {request.content_type!r}",
                          param="Content-Type")
-    raw = await request.read()  # raises 413 past client_max_size
+    try:
+        async with asyncio.timeout(float(st.config.get("service", "body_timeout"))):
+            raw = await request.read()  # raises 413 past client_max_size
+    except TimeoutError:
+        raise ApiError(408, "request body not received in time", param="body") from None
     try:
         patch = json.loads(raw)
     except (ValueError, UnicodeDecodeError) as e:
@@ -173,14 +208,32 @@ async def put_config(request: web.Request) -> web.Response:
     except RecursionError:
         raise InputError("body is nested too deeply", param="body") from None
     async with st.config_lock:
-        new = st.config.with_patch(patch)  # validates everything before anything changes
-        if new.path is not None:
-            await asyncio.to_thread(save_config, new)
-        old, st.config = st.config, new
+        saved = st.saved_config()
+        new_saved = saved.with_patch(patch)  # validates everything before anything changes
+        host = new_saved.get("service", "host")
+        if host != saved.get("service", "host") and not await _resolves(host):
+            raise InputError(f"service.host {host!r} does not resolve to an address of this machine",
+                             param="service.host")
+        transport = request.transport
+        if transport is None or transport.is_closing():
+            raise ApiError(400, "client went away before the change was applied", param="body")
+        if new_saved.path is not None:
+            try:
+                await asyncio.to_thread(save_config, new_saved)
+            except OSError as e:  # nothing changed: the old file is intact (atomic write)
+                why = _STORAGE_ERRORS.get(e.errno or 0, f"{errno.errorcode.get(e.errno or 0, 'error')}: {e.strerror}")
+                log.exception("cannot save config to %s: %s", new_saved.path, why)
+                raise ApiError(507, f"cannot save the config to {new_saved.path}: {why}; nothing was changed",
+                               param="config") from None
+        old = st.config
+        new = new_saved.running(old)
+        st.config = new
+        st.pending = new_saved.pending(new)
+        st.saved = new_saved
         await _apply_config(st, old, new)
-    restart = sorted(f"{t}.{k}" for t, k in RESTART_KEYS if old.get(t, k) != new.get(t, k))
-    return web.json_response({"config": new.to_json(), "restart_required": restart,
-                              "saved": new.path is not None})
+    restart = sorted(f"{t}.{k}" for t, kv in st.pending.items() for k in kv)
+    return web.json_response({"config": new.to_json(), "pending": st.pending, "restart_required": restart,
+                              "saved": new_saved.path is not None})
 
 
 async def _apply_config(st: ServiceState, old: Any, new: Any) -> None:
@@ -278,6 +331,15 @@ def _static_handler(static_dir: Path, name: str) -> Any:
     return handler
 
 
+def _openapi_handler(static_dir: Path) -> Any:
+    from device.service.openapi import document
+
+    async def handler(request: web.Request) -> web.Response:
+        return web.Response(text=document(static_dir), content_type="application/json")
+
+    return handler
+
+
 def add_routes(app: web.Application, static_dir: Path) -> None:
     """Register the API and the dashboard. Static files are a fixed list (no path traversal)."""
     r = app.router
@@ -290,7 +352,7 @@ def add_routes(app: web.Application, static_dir: Path) -> None:
     r.add_get(f"{API}/stream", stream)
     r.add_get(f"{API}/config", get_config)
     r.add_put(f"{API}/config", put_config)
-    r.add_get(f"{API}/openapi.json", _static_handler(static_dir, "openapi.json"))
+    r.add_get(f"{API}/openapi.json", _openapi_handler(static_dir))
     r.add_get("/", _static_handler(static_dir, "index.html"))
     for name in STATIC_FILES:
         r.add_get(f"/static/{name}", _static_handler(static_dir, name))

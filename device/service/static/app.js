@@ -6,6 +6,18 @@
   const $ = (id) => document.getElementById(id);
   const tokenKey = "lightprobe.token";
   let token = localStorage.getItem(tokenKey) || "";
+  // `make run` prints the dashboard URL with #token=...: take it, keep it, and drop it from the
+  // address bar (a fragment never reaches the server or its logs)
+  function takeTokenFromHash() {
+    const fromHash = new URLSearchParams(location.hash.slice(1)).get("token");
+    if (!fromHash) return;
+    token = fromHash; localStorage.setItem(tokenKey, token);
+    history.replaceState(null, "", location.pathname + location.search);
+    const input = document.getElementById("token-input");
+    if (input) input.value = token;
+  }
+  takeTokenFromHash();
+  window.addEventListener("hashchange", takeTokenFromHash);
   let lastLights = null;
   let lastFrameShown = -1;
   let nameDirty = false;
@@ -18,8 +30,17 @@
     if (img.dataset.loading === "1") return;
     img.dataset.loading = "1";
     const next = new Image();
-    next.onload = () => { img.src = next.src; img.dataset.loading = "0"; img.dataset.loaded = "1"; drawLights(); };
-    next.onerror = () => { img.dataset.loading = "0"; };
+    next.onload = () => {
+      img.src = next.src; img.dataset.loading = "0"; img.dataset.loaded = "1"; drawLights();
+      const hint = $("image-hint");
+      if (hint) hint.hidden = true;
+    };
+    next.onerror = () => {
+      img.dataset.loading = "0";
+      // camera images need the token (the room is private): say so where the picture would be
+      const hint = $("image-hint");
+      if (hint) hint.hidden = !!token;
+    };
     next.src = withToken(url + (url.includes("?") ? "&" : "?") + "t=" + Date.now());
   }
 
@@ -155,6 +176,10 @@
 
   // ---- rename ------------------------------------------------------------------------------------
   $("token-input").value = token;
+  $("token-input").addEventListener("change", () => {  // images load with the token from the next frame on
+    token = $("token-input").value.trim();
+    if (token) localStorage.setItem(tokenKey, token); else localStorage.removeItem(tokenKey);
+  });
   $("name-input").addEventListener("input", () => { nameDirty = true; });
   $("rename-form").addEventListener("submit", async (ev) => {
     ev.preventDefault();
