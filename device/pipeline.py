@@ -93,6 +93,9 @@ class PipelineConfig:
     capture_timeout_s: float = 5.0  # per frame (plus the exposure itself)
     lower: str = "zero"
     cache_dir: str | None = None  # keep projection tables on disk here (fast restarts)
+    # a fresh state dir serves from a coarse table first and builds the balanced one behind it
+    # (the service; off by default: which frames see which table then depends on wall time)
+    staged_start: bool = False
     dark_energy: float = 0.005  # share of the light the longest exposure may leave noisy
     sampler_params: dict[str, Any] = field(default_factory=dict)
 
@@ -210,6 +213,8 @@ class Pipeline:
         self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0}
         self._tables: asyncio.Future[Any] | None = None
         self._geo: Any = None  # projection table and per-pixel constants (_Geometry)
+        self._refine = False  # a coarse table serves: build the balanced one behind it
+        self._refining: asyncio.Future[Any] | None = None
         self._merge: Any = None
         self._sampler: Any = None
         self._schedule: _Schedule | None = None
@@ -280,6 +285,7 @@ class Pipeline:
             self._last_sampled = None
         if config.equirect_height != old.equirect_height:
             self._geo, self._tables, self._merge = None, None, None
+            self._refine, self._refining = False, None
         if self._planner is not None:
             self._planner.max_exposures = config.max_exposures
             self._planner.ev_step = config.ev_step
@@ -295,15 +301,27 @@ class Pipeline:
         return make_sampler(name, **self.config.sampler_params)
 
     # ---- tables -------------------------------------------------------------------------------
-    def _build_geometry(self) -> _Geometry:
+    def _build_geometry(self, coarse_first: bool | None = None) -> _Geometry:
         """The equirect table (from ``cache_dir`` when built before), per output pixel constants,
         and one warm-up of every kernel the first frame runs (numba's cache loads them here, in
-        parallel with the first capture)."""
+        parallel with the first capture).
+
+        Staged start: when the balanced table is not on disk yet (a fresh state dir) and
+        ``coarse_first`` (default ``PipelineConfig.staged_start``), a coarse one is built now (no solid-angle balancing, one subpixel per
+        fisheye pixel: ~1 s less) so the first lights come sooner, and the balanced table is
+        built behind the running pipeline (:meth:`_refine_tables`), which swaps it in."""
         from device.projection import Projector
 
         cfg = self.config
-        projector = Projector(self.calibration, equirect_height=cfg.equirect_height, nside=cfg.nside,
-                              lower="zero", subdiv=2, cache_dir=cfg.cache_dir, maps=("equirect",))
+        if coarse_first is None:
+            coarse_first = cfg.staged_start
+        kw: dict[str, Any] = {"equirect_height": cfg.equirect_height, "nside": cfg.nside, "lower": "zero",
+                              "cache_dir": cfg.cache_dir, "maps": ("equirect",)}
+        try:
+            projector = Projector(self.calibration, subdiv=2, load_only=coarse_first, **kw)
+        except LookupError:
+            projector = Projector(self.calibration, subdiv=1, balance=False, **kw)
+            self._refine = True
         geo = _Geometry(projector, self.calibration, cfg.equirect_height)
         try:  # warm-up only: a failure costs the first frame time, nothing else
             self._warm(geo)
@@ -345,6 +363,19 @@ class Pipeline:
             finally:
                 if task.done():
                     self._tables = None
+        if self._refine and self._refining is None and self.latest is not None:
+            # the balanced table, behind the live one, once the first lights are out
+            self._refining = asyncio.ensure_future(asyncio.to_thread(self._build_geometry, False))
+        if self._refining is not None and self._refining.done():
+            task, self._refining, self._refine = self._refining, None, False
+            try:
+                geo = task.result()
+            except Exception as e:  # the coarse table keeps serving; the next start builds again
+                log.warning("balanced projection table failed: %s", e)
+            else:
+                if geo.rows == self._geo.rows:  # same output pixels: the rolling estimate carries over
+                    self._geo = geo
+                    log.info("balanced projection table in use")
         if self._merge is None:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
                                        max_slots=self.config.max_exposures + 2)

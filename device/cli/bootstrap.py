@@ -70,7 +70,7 @@ class PipelineFactory:
                               max_exposures=cfg.get("pipeline", "max_exposures"),
                               equirect_height=cfg.get("pipeline", "equirect_height"),
                               nside=cfg.get("pipeline", "nside"), probe_id=self.probe_id,
-                              cache_dir=str(self.state_dir / "cache"))
+                              cache_dir=str(self.state_dir / "cache"), staged_start=True)
 
     def __call__(self, camera: Camera, cfg: Any) -> Any:
         from calibration.store import load_calibration

@@ -83,6 +83,12 @@ class Projector:
         restart loads them instead of rebuilding (``device.projection.diskcache``).
     maps : the tables to build (a subset of polar, equirect, healpix; the live pipeline needs
         only the equirect one, a third of the build).
+    balance : False builds a coarse table, without the exact solid-angle balancing (a plain
+        area-weighted mean per output pixel, a few percent off per pixel; ~1 s less to build),
+        never written to ``cache_dir``: the live pipeline's first lights on a fresh state dir,
+        until the balanced table is built behind it.
+    load_only : raise :class:`LookupError` instead of building when the tables are neither in
+        memory nor in ``cache_dir``.
     """
 
     def __init__(self, calibration: Calibration, *, polar_height: int = 90,
@@ -90,7 +96,8 @@ class Projector:
                  ground_albedo: float = 0.2, horizon_band_deg: float = 5.0,
                  ring_margin_deg: float = 0.5, subdiv: int = 4, cache: bool = True,
                  cache_dir: str | os.PathLike[str] | None = None,
-                 maps: tuple[str, ...] = ("polar", "equirect", "healpix")) -> None:
+                 maps: tuple[str, ...] = ("polar", "equirect", "healpix"), balance: bool = True,
+                 load_only: bool = False) -> None:
         if calibration.fisheye is None:
             raise InputError("calibration has no fisheye section", param="fisheye")
         if lower not in LOWER_POLICIES:
@@ -110,21 +117,25 @@ class Projector:
         if bad or not maps:
             raise InputError(f"maps must name some of polar, equirect, healpix; got {maps!r}", param="maps")
         self.maps = tuple(sorted(set(maps), key=("polar", "equirect", "healpix").index))
-        self._build(cache, cache_dir)
+        self.balanced = bool(balance)
+        self._build(cache, cache_dir, load_only)
 
     # -- construction ---------------------------------------------------------------------------
-    def _build(self, cache: bool, cache_dir: str | os.PathLike[str] | None) -> None:
+    def _build(self, cache: bool, cache_dir: str | os.PathLike[str] | None, load_only: bool = False) -> None:
         from .diskcache import cache_path, load_built, save_built
 
         key = (self.calibration.id, self.polar_height, self.equirect_height, self.nside,
-               self.ring_margin_deg, self.subdiv, *((self.maps,) if self.maps != ("polar", "equirect", "healpix") else ()))
+               self.ring_margin_deg, self.subdiv, *((self.maps,) if self.maps != ("polar", "equirect", "healpix") else ()),
+               *(() if self.balanced else ("coarse",)))
         built = _TABLE_CACHE.get(key) if cache else None
-        path = cache_path(cache_dir, key) if cache_dir is not None else None
+        path = cache_path(cache_dir, key) if cache_dir is not None and self.balanced else None
         if built is None and path is not None:
             built = load_built(path)
+        if built is None and load_only:
+            raise LookupError("projection tables not built yet")
         if built is None:
             built = _build_all(self.calibration, self.polar_height, self.equirect_height,
-                               self.nside, self.ring_margin_deg, self.subdiv, self.maps)
+                               self.nside, self.ring_margin_deg, self.subdiv, self.maps, self.balanced)
             if path is not None:
                 try:
                     save_built(path, built)

@@ -186,8 +186,10 @@ def _chunk_entries(grid: _Grid, ch: _Chunk, m: int) -> sp.coo_matrix:
 
 
 def _build_table(grid: _Grid, geo: _Geometry, parts: list[sp.coo_matrix],
-                 gain: np.ndarray) -> _Table:
-    """Assemble eq. (O), fill holes by gather, balance (IPF) and normalise to eq. (P)."""
+                 gain: np.ndarray, balance: bool = True) -> _Table:
+    """Assemble eq. (O), fill holes by gather, balance (IPF; ``balance=False``: a coarse table,
+    each output pixel the area-weighted mean of its footprint, rows not at their exact solid
+    angle) and normalise to eq. (P)."""
     n, m = grid.size, geo.w * geo.h
     row = np.concatenate([p.row for p in parts] or [np.zeros(0, np.int64)])
     col = np.concatenate([p.col for p in parts] or [np.zeros(0, np.int64)])
@@ -198,7 +200,8 @@ def _build_table(grid: _Grid, geo: _Geometry, parts: list[sp.coo_matrix],
     col_target = np.bincount(W.indices, weights=W.data, minlength=m)
 
     # Interior pixels: a 3 x 3 grid of points (edges included) all well inside the valid region
-    fr = np.linspace(0.0, 1.0, 3)
+    # (a coarse table tests the corners only: a quarter of the projections)
+    fr = np.linspace(0.0, 1.0, 3) if balance else np.array([0.0, 1.0])
     interior = np.asarray(geo.covered(grid.points(fr).reshape(-1, 3)).reshape(n, -1).all(axis=1))
 
     # Hole-free fallback: pixels with no subpixel but a covered centre gather bilinearly
@@ -215,7 +218,7 @@ def _build_table(grid: _Grid, geo: _Geometry, parts: list[sp.coo_matrix],
     # With no free row the two marginals must have the same total
     if not np.any(~interior & (np.diff(W.indptr) > 0)):
         col_target *= omega[interior].sum() / col_target.sum()
-    resid = _balance(W, omega, interior, col_target)
+    resid = _balance(W, omega, interior, col_target) if balance else float("nan")
 
     rowsum = np.bincount(np.repeat(np.arange(n), np.diff(W.indptr)), weights=W.data, minlength=n)
     coverage = np.where(interior, 1.0, np.clip(rowsum / omega, 0.0, 1.0))
@@ -265,7 +268,7 @@ _TABLE_CACHE_SIZE = 4
 
 def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside: int,
                ring_margin_deg: float, subdiv: int,
-               maps: tuple[str, ...] = ("polar", "equirect", "healpix")) -> _Built:
+               maps: tuple[str, ...] = ("polar", "equirect", "healpix"), balance: bool = True) -> _Built:
     """Build the tables of ``maps`` (eq. O, gather fallback, balancing, eq. P) from one
     calibration."""
     fe = cal.fisheye
@@ -290,7 +293,7 @@ def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside:
         for name, grid in grids.items():
             parts[name].append(_chunk_entries(grid, ch, m))
     geo = _Geometry(fe, valid)
-    tables = {k: _build_table(g, geo, parts[k], gain) for k, g in grids.items()}
+    tables = {k: _build_table(g, geo, parts[k], gain, balance) for k, g in grids.items()}
     inv_gain = np.where(gain > 0, 1.0 / np.where(gain > 0, gain, 1.0), 0.0)
     arrays = [valid, gain, inv_gain, omega_pix]
     for t in tables.values():
