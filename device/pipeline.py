@@ -96,6 +96,9 @@ class PipelineConfig:
     # a fresh state dir serves from a coarse table first and builds the balanced one behind it
     # (the service; off by default: which frames see which table then depends on wall time)
     staged_start: bool = False
+    # frames each exposure is held on a camera without per-frame metadata (V4L2, UVC): a change
+    # costs the control latency plus a verified brightness step, a repeat costs nothing
+    hold_frames: int = 4
     dark_energy: float = 0.005  # share of the light the longest exposure may leave noisy
     sampler_params: dict[str, Any] = field(default_factory=dict)
 
@@ -171,16 +174,22 @@ class FrameResult:
 
 @dataclass
 class _Schedule:
-    """The exposures the camera cycles through, the shortest every other frame."""
+    """The exposures the camera cycles through: the shortest every other frame, or, for a camera
+    without per-frame metadata (``hold`` > 1), each exposure for ``hold`` frames in turn."""
 
     controls: list[tuple[float, float]]  # ascending t g
     sweep: bool = False
     order: list[int] = field(default_factory=list)
     pos: int = 0
+    hold: int = 1
 
     def __post_init__(self) -> None:
         n = len(self.controls)
-        if self.sweep or n <= 2:
+        if self.sweep:
+            self.order = list(range(n))
+        elif self.hold > 1:  # every change costs settling frames: change seldom
+            self.order = [k for k in range(n) for _ in range(self.hold)]
+        elif n <= 2:
             self.order = list(range(n))
         else:  # S, E1, S, E2, ...: the shortest measures a lamp within two frames
             self.order = [k for i in range(1, n) for k in (0, i)]
@@ -214,6 +223,7 @@ class Pipeline:
         self._tables: asyncio.Future[Any] | None = None
         self._geo: Any = None  # projection table and per-pixel constants (_Geometry)
         self._refine = False  # a coarse table serves: build the balanced one behind it
+        self._settled: tuple[float, float] | None = None  # controls a metadata-less camera runs now
         self._refining: asyncio.Future[Any] | None = None
         self._merge: Any = None
         self._sampler: Any = None
@@ -260,7 +270,13 @@ class Pipeline:
         if self._schedule is None:
             self._schedule = _Schedule(self._sweep(), sweep=True)
         self._stream_on = True
+        self._settled = None  # a (re)opened stream: settle the first controls again
         self._started = True
+
+    def _hold(self) -> int:
+        """Frames per exposure: 1 with per-frame metadata (each frame says what it shows), else
+        ``PipelineConfig.hold_frames`` (a change is settled by skipping frames)."""
+        return 1 if self.camera.capabilities.has_frame_metadata else max(1, int(self.config.hold_frames))
 
     def _sweep(self) -> list[tuple[float, float]]:
         return self._planner.to_controls(self._planner.metering_sweep())
@@ -417,9 +433,15 @@ class Pipeline:
             self._stream_on = False
             if frame.meta.exposure_verified:
                 return frame, float(frame.meta.exposure_s), float(frame.meta.gain)
+        if self._settled == (t, g) and not self._stream_on:
+            # the sensor already runs these controls (the last frame verified them): the next
+            # frame shows them, no settling
+            frame = await self.camera.capture(self.config.capture_timeout_s + 4 * t)
+            return frame, t, g
         frames = await capture_burst(self.camera, [t], gain=g, timeout=self.config.capture_timeout_s,
                                      first_timeout=first, pipelined=False)
         self._stream_on = False
+        self._settled = (t, g)
         return frames[0], t, g
 
     def _process(self, frame: Frame, exposure: float, gain: float) -> FrameResult:
@@ -509,7 +531,7 @@ class Pipeline:
             controls = sorted(set(controls), key=lambda c: c[0] * c[1])
         keep = set(controls)
         merge.forget(keep, older_than=self._frame - 2 * len(controls))
-        self._schedule = _Schedule(controls)
+        self._schedule = _Schedule(controls, hold=self._hold())
         self._planned_at = sensor_t
 
     def _unchanged(self, coarse: np.ndarray, fused: np.ndarray) -> bool:
