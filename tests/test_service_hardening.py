@@ -146,6 +146,11 @@ async def test_images_need_the_token_and_foreign_host_names_get_421(tmp_path: Pa
         # its own names and addresses are fine
         for host in ("localhost", f"127.0.0.1:{url.rsplit(':', 1)[1]}", socket.gethostname()):
             assert (await _get(url + "/api/v1/status", host=host))[0] == 200, host
+        # an alias the installer adds is answered from the next request on
+        async with aiohttp.ClientSession(headers={"Authorization": f"Bearer {token}"}) as s, \
+                s.put(url + "/api/v1/config", json={"service": {"allowed_hosts": ["probe.example"]}}) as r:
+            assert r.status == 200
+        assert (await _get(url + "/api/v1/status", host="probe.example"))[0] == 200
         # failed authentications: 403 each, then 429 for that peer only
         codes = [(await _get(url + "/api/v1/preview.jpg", token="wrong"))[0] for _ in range(12)]
         assert codes[:10] == [403] * 10, codes

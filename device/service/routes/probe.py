@@ -230,6 +230,7 @@ async def put_config(request: web.Request) -> web.Response:
         st.config = new
         st.pending = new_saved.pending(new)
         st.saved = new_saved
+        st.allowed_hosts = None  # service.allowed_hosts applies from the next request on
         await _apply_config(st, old, new)
     restart = sorted(f"{t}.{k}" for t, kv in st.pending.items() for k in kv)
     return web.json_response({"config": new.to_json(), "pending": st.pending, "restart_required": restart,
