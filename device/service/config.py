@@ -48,8 +48,14 @@ _Spec = tuple[type, Any, str, Any]
 _NAME_RE = re.compile(r"^[^\x00-\x1f\x7f.][^\x00-\x1f\x7f]{0,62}$")
 
 
-def _in(lo: float, hi: float) -> Any:
-    return lambda v: lo <= v <= hi
+class _in:  # lower case: it reads as a predicate in SCHEMA
+    """``lo <= v <= hi``, with its bounds readable (the OpenAPI schema is generated from them)."""
+
+    def __init__(self, lo: float, hi: float) -> None:
+        self.lo, self.hi = lo, hi
+
+    def __call__(self, v: float) -> bool:
+        return self.lo <= v <= self.hi
 
 
 _LABEL = re.compile(r"^(?!-)[A-Za-z0-9-]{1,63}(?<!-)$")

@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from device.service.config import SCHEMA
+from device.service.config import SCHEMA, _in
 
 __all__ = ["config_schema", "document"]
 
@@ -41,18 +41,10 @@ def _key_schema(table: str, key: str) -> dict[str, Any]:
         s["type"] = "string"
     elif typ is list:
         s.update({"type": "array", "items": {"type": "string", "minLength": 1, "maxLength": 63}})
-    ranges = {
-        ("service", "port"): (0, 65535), ("service", "client_max_size"): (1024, 1 << 24),
-        ("service", "ws_send_timeout"): (0.1, 60.0), ("service", "max_connections"): (16, 65536),
-        ("service", "max_connections_per_peer"): (1, 65536), ("service", "header_timeout"): (0.5, 300.0),
-        ("service", "body_timeout"): (0.5, 600.0), ("service", "keepalive_timeout"): (1.0, 3600.0),
-        ("pipeline", "fps"): (0.1, 60.0), ("pipeline", "light_count"): (1, 4096),
-        ("pipeline", "max_exposures"): (1, 16), ("pipeline", "equirect_height"): (16, 512),
-    }
-    if (table, key) in ranges:
-        s["minimum"], s["maximum"] = ranges[(table, key)]
-    if (table, key) == ("pipeline", "nside"):
-        s["enum"] = [1 << k for k in range(8)]
+    if isinstance(_check, _in):  # the validator's own bounds: one source
+        s["minimum"], s["maximum"] = _check.lo, _check.hi
+    if (table, key) == ("pipeline", "nside"):  # the powers of two the validator accepts
+        s["enum"] = [1 << k for k in range(16) if _check(1 << k)]
     if (table, key) == ("pipeline", "sampler"):
         from device.service.config import SAMPLERS
 

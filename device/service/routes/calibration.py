@@ -108,20 +108,15 @@ DESK: web.AppKey[Desk] = web.AppKey("lightprobe_calibration_desk", Desk)
 
 
 # ---- request parsing ------------------------------------------------------------------------------
-def required_if_present(key: str) -> bool:
-    """Fields that take no null (only ``exposure_s`` may be null: meter once)."""
-    return key != "exposure_s"
-
-
 def _number(d: dict[str, Any], key: str, prefix: str, lo: float, hi: float, default: float | None,
             integer: bool = False) -> float | None:
     name = f"{prefix}{key}"
     v = d.get(key, default)
     if v is None:
-        if default is not None or (key in d and required_if_present(key)):
+        if default is not None:  # an explicit null where a number (or the default) belongs
             kind = "an integer" if integer else "a number"
             raise InputError(f"{name} must be {kind} in [{lo:g}, {hi:g}], got null", param=name)
-        return None
+        return None  # absent or null with no default: exposure_s meters, cols/rows are checked after
     if integer and isinstance(v, float) and v.is_integer():  # JSON's 6.0 is the integer 6
         v = int(v)
     ok = isinstance(v, int) if integer else isinstance(v, int | float)
