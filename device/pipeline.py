@@ -358,8 +358,9 @@ class Pipeline:
         codes = np.zeros((w * h, 3), np.uint16 if fmt.is_raw else np.uint8)
         lut, dark = geo.lut(1e-3, 1.0, fmt)
         frame_to_map(geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark, geo.rows)
-        RollingMerge(geo.rows, max_slots=2).update((1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain,
-                                                   codes, lut, dark)
+        # width set: the moving-lamp hold kernels load too
+        RollingMerge(geo.rows, width=2 * geo.height, max_slots=2).update(
+            (1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark)
         warm = np.zeros((16, 32, 3), np.float32)
         warm[:8] = 1.0
         sampler = self._make_sampler(self.config.sampler)

@@ -154,6 +154,9 @@ class SimCamera(Camera):
         if not self._open:
             self._reset_controls()
             self._pace_origin = None
+            # load the sensor model's compiled kernels now (a driver is loaded before it
+            # streams), so the first frame does not pay for them
+            self.sensor.expose(np.zeros((2, 2, 3), np.float32), 1e-3, 1.0, self.mode.format, self.seed, 0)
         self._open = True
 
     async def close(self) -> None:
