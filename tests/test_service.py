@@ -339,12 +339,12 @@ async def test_stalled_client_is_dropped_and_others_keep_streaming(tmp_path: Pat
 
 
 async def test_camera_disconnect_turns_lights_stale_then_recovers(tmp_path: Path) -> None:
-    """The simulator unplugs itself (its ``disconnect`` fault, 3 s): lights turn stale, the loop
+    """The simulator unplugs itself (its ``disconnect`` fault, 5 s): lights turn stale, the loop
     reconnects with backoff, and fresh lights follow once the camera is back."""
     async with running_service(service_config(tmp_path), backoff=(0.1, 0.4)) as s, \
             aiohttp.ClientSession() as c, c.ws_connect(s.api + "/stream") as ws:
         await _wait_frames(c, s.api, 2)
-        s.state.camera.faults.inject("disconnect", duration_s=3.0)
+        s.state.camera.faults.inject("disconnect", duration_s=5.0)
         st = await _poll_status(c, s.api, lambda st: st["stale"], 30.0)
         assert st["camera"]["state"] == "reconnecting"
         assert st["health"] == "degraded"

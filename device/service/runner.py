@@ -268,13 +268,17 @@ class Runner:
         await self.hub.publish(payload)
 
     async def _mark_stale(self) -> None:
-        self.stale = True
+        # encode first, then switch the flag, the set and its JSON together: a reader never sees
+        # status "stale" next to a /lights body that still says fresh
         self._last_frame_t = None
         self.fps = 0.0
         if self.lights is not None and not self.lights.stale:
-            self.lights = dataclasses.replace(self.lights, stale=True)
-            self.lights_text, payload = await asyncio.to_thread(_encode, self.lights)
+            lights = dataclasses.replace(self.lights, stale=True)
+            text, payload = await asyncio.to_thread(_encode, lights)
+            self.lights, self.lights_text, self.stale = lights, text, True
             await self.hub.publish(payload)
+        else:
+            self.stale = True
 
     # ---- views for the API ------------------------------------------------------------------
     def progressing(self, within: float) -> bool:
