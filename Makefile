@@ -22,7 +22,14 @@ venv: $(STAMP)
 run: $(STAMP)
 	$(BIN)/lightprobe serve --camera sim --scene $(SCENE) --host $(HOST) --port $(PORT)
 
-test: $(STAMP)
+NODE_TOOLS := tests/node/node_modules/.installed
+
+# the tests' independent checkers from npm (Khronos glTF-Validator, ktx-parse), pinned by the lock file
+$(NODE_TOOLS): tests/node/package.json tests/node/package-lock.json
+	cd tests/node && npm ci --silent --no-audit --no-fund
+	touch $(NODE_TOOLS)
+
+test: $(STAMP) $(NODE_TOOLS)
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)

@@ -22,7 +22,7 @@ import logging
 import os
 import tempfile
 from collections.abc import AsyncIterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import aiohttp
 import numpy as np
@@ -30,6 +30,9 @@ import numpy as np
 from device.core.errors import InputError, LightprobeError
 from device.core.lightset import LightSet
 from device.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree
+
+if TYPE_CHECKING:
+    from .formats import CubeMap, EnvironmentFiles, SHLighting
 
 __all__ = [
     "ProbeAuthError",
@@ -169,6 +172,59 @@ class ProbeClient:
             return decode_q2tree(body, meta)
         except Q2DecodeError as e:
             raise ProbeProtocolError(f"{self.api}/q2tree: {e}", self.api + "/q2tree") from e
+
+    # ---- host formats ---------------------------------------------------------------------------
+    async def sh(self, convention: str = "canonical") -> SHLighting:
+        """``GET /sh``: order-2 SH (all light, ambient) and the primary light in a host's
+        convention (canonical, threejs, webxr, filament, unity)."""
+        from .formats import SHLighting
+
+        d = await self._json("/sh", {"convention": convention})
+        try:
+            return SHLighting.from_json(d)
+        except InputError as e:
+            raise ProbeProtocolError(f"{self.api}/sh: {e}", self.api + "/sh") from e
+
+    async def cubemap(self, size: int = 64, levels: int | None = None) -> CubeMap:
+        """``GET /cubemap.ktx2`` (needs the token unless ``service.public_images``): the
+        GGX-prefiltered cube map, decoded."""
+        from device.formats.ktx2 import read_ktx2_cubemap
+
+        from .formats import CubeMap
+
+        params = {"size": str(size)} | ({"levels": str(levels)} if levels is not None else {})
+        body, _, _ = await self._get("/cubemap.ktx2", params)
+        try:
+            mips, kv = read_ktx2_cubemap(body)
+        except InputError as e:
+            raise ProbeProtocolError(f"{self.api}/cubemap.ktx2: {e}", self.api + "/cubemap.ktx2") from e
+        rough = [float(x) for x in str(kv.get("lightprobe.roughness", "")).split(",") if x]
+        return CubeMap([m[..., :3].copy() for m in mips], rough, kv)
+
+    async def environment(self, kind: str = "gltf") -> EnvironmentFiles:
+        """``GET /environment.gltf`` or ``/environment.usda`` (needs the token unless
+        ``service.public_images``) with every file it references (glTF images, USD textures)."""
+        from .formats import EnvironmentFiles
+
+        if kind not in ("gltf", "usd"):
+            raise InputError(f"kind must be 'gltf' or 'usd', got {kind!r}", param="kind")
+        name = "environment.gltf" if kind == "gltf" else "environment.usda"
+        body, _, _ = await self._get("/" + name)
+        if kind == "gltf":
+            try:
+                refs = [im["uri"].split("?")[0] for im in json.loads(body).get("images", [])]
+            except (ValueError, KeyError, TypeError, AttributeError) as e:
+                raise ProbeProtocolError(f"{self.api}/{name}: not a glTF document: {e}", self.api + "/" + name) from e
+        else:
+            import re
+
+            refs = re.findall(rb"@([^@]+)@", body)
+            refs = [r.decode() for r in refs]
+        files = {}
+        for ref in refs:
+            data, _, _ = await self._get("/" + ref)
+            files[ref] = data
+        return EnvironmentFiles(name, body, files)
 
     # ---- the stream -----------------------------------------------------------------------------
     async def subscribe(self, *, heartbeat: float = 5.0) -> AsyncIterator[LightSet]:

@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "warm-kernels": ("device.cli.kernels", "compile the service's numba kernels (run once at install)"),
     "fuse": ("device.hdr.cli", "fuse an exposure stack into a linear HDR image"),
     "sample": ("device.sampling.cli", "sample an equirect map into a light set"),
+    "export": ("device.formats.cli", "write a map as a host engine's lighting (SH, cube map, glTF, USD)"),
     "run-pipeline": ("device.cli.run_pipeline", "run the capture pipeline on a camera and print per-frame stats"),
     "calibrate": ("device.cli.calibrate", "calibration routines (fisheye, response, photometric, ...)"),
     "cameras": ("drivers.cli", "list attached cameras and their capabilities"),

@@ -53,6 +53,9 @@ def _token_from(request: web.Request) -> str | None:
 # Camera images and maps of the room: private unless the installer opens them (service.public_images)
 PRIVATE_PATHS = frozenset({"/api/v1/preview.jpg", "/api/v1/probe.exr", "/api/v1/probe.hdr",
                            "/api/v1/calibration/live/frame.jpg"})
+# ... and everything made of the map's pixels for hosts: cubemaps, glTF images, USD dome textures
+# (the SH and the primary light are lighting data, readable on the LAN)
+PRIVATE_PREFIXES = ("/api/v1/cubemap", "/api/v1/environment")
 
 
 def needs_token(st: ServiceState, method: str, path: str) -> bool:
@@ -62,7 +65,7 @@ def needs_token(st: ServiceState, method: str, path: str) -> bool:
         return False
     if method not in ("GET", "HEAD"):
         return True
-    if path in PRIVATE_PATHS and not st.config.get("service", "public_images"):
+    if (path in PRIVATE_PATHS or path.startswith(PRIVATE_PREFIXES)) and not st.config.get("service", "public_images"):
         return True
     return bool(st.config.get("service", "require_token_for_reads"))
 
@@ -356,7 +359,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
     ``host`` are where the API listens (defaults from ``[service]``), for mDNS."""
-    from device.service.routes import calibration, probe, q2tree
+    from device.service.routes import calibration, environment, probe, q2tree
 
     app = web.Application(
         client_max_size=int(config.get("service", "client_max_size")),
@@ -378,6 +381,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     static = Path(__file__).parent / "static"
     probe.add_routes(app, static)
     q2tree.add_routes(app)  # GET /api/v1/q2tree (binary tree for host-side merging)
+    environment.add_routes(app, static)  # SH, cubemaps, glTF / USD, the live three.js view
     calibration.add_routes(app, getattr(make_pipeline, "state_dir", None), static)  # live calibration
     app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)

@@ -103,6 +103,25 @@ def _encode(lights: LightSet) -> tuple[str, bytes]:
     return text, text.encode()
 
 
+def _environment(estimator: Any, result: Any, lights: LightSet) -> Any:
+    """The frame's SH + primary light (blocking; ``None`` if the result carries no map). A
+    failure here is logged and costs the hosts' formats one frame, never the light set."""
+    equirect = getattr(result, "equirect", None)
+    if equirect is None:
+        return None
+    try:
+        return estimator.estimate(equirect, frame=int(lights.frame), timestamp=float(lights.timestamp),
+                                  unit=str(lights.unit), probe=str(lights.probe), pose=lights.pose)
+    except Exception:
+        log.exception("SH / primary light estimate failed for frame %s", lights.frame)
+        return None
+
+
+def _encode_frame(estimator: Any, result: Any, lights: LightSet) -> tuple[str, bytes, Any]:
+    text, payload = _encode(lights)
+    return text, payload, _environment(estimator, result, lights)
+
+
 class Runner:
     """Owns the pipeline task. ``make_pipeline(cfg)`` builds a pipeline for the current config
     (called again after a config change that needs a rebuild, e.g. a new sampler)."""
@@ -125,6 +144,10 @@ class Runner:
         self.result: Any = None  # the last FrameResult
         self.lights: LightSet | None = None
         self.lights_text: str | None = None  # self.lights as JSON (serialised once, off the loop)
+        from device.formats.environment import EnvironmentEstimator
+
+        self.estimator = EnvironmentEstimator()  # SH + primary light, incremental, every frame
+        self.environment: Any = None  # the last frame's device.formats.environment.Environment
         self.stale = True
         self.last_progress: float | None = None
         self.last_activity: float | None = None  # a frame or a reconnect attempt (watchdog)
@@ -253,7 +276,7 @@ class Runner:
         lights: LightSet = result.lights
         if lights.stale:
             lights = dataclasses.replace(lights, stale=False)
-        text, payload = await asyncio.to_thread(_encode, lights)
+        text, payload, env = await asyncio.to_thread(_encode_frame, self.estimator, result, lights)
         now = time.monotonic()
         if self._last_frame_t is not None:
             dt = max(now - self._last_frame_t, 1e-6)
@@ -261,6 +284,7 @@ class Runner:
         self._last_frame_t = now
         self.result, self.lights, self.stale = result, lights, False
         self.lights_text = text
+        self.environment = env
         self.frames += 1
         self.frames_skipped += int(bool(getattr(result, "skipped", False)))
         self.last_progress = self.last_activity = now

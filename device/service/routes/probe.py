@@ -257,14 +257,20 @@ async def _apply_config(st: ServiceState, old: Any, new: Any) -> None:
 
 async def stream(request: web.Request) -> web.StreamResponse:
     """WS: one light-set JSON text message per frame, newest first; slow clients skip frames
-    and are dropped when one send takes longer than ``service.ws_send_timeout``."""
+    and are dropped when one send takes longer than ``service.ws_send_timeout``.
+
+    A client that sends ``{"subscribe": ["sh"], "convention": "threejs"}`` (any convention of
+    ``GET /api/v1/sh``) also gets, right after each light set, that frame's SH body (the same
+    JSON as ``GET /api/v1/sh``, with ``"kind": "sh"``), so light sets and SH stay in step;
+    ``{"subscribe": []}`` stops it. Other text is ignored."""
     st = request.app[STATE]
     _check_query(request, set())
     ws = web.WebSocketResponse(heartbeat=15.0, max_msg_size=4096, compress=False)
     await ws.prepare(request)
     _bound_send_buffer(request)
     st.websockets.add(ws)
-    reader = asyncio.create_task(_drain_incoming(ws))
+    subs: dict[str, Any] = {}
+    reader = asyncio.create_task(_drain_incoming(ws, subs))
     hub = st.runner.hub
     seen = 0
     try:
@@ -283,6 +289,10 @@ async def stream(request: web.Request) -> web.StreamResponse:
             try:  # the frame's bytes, encoded once for every client, sent as a text message
                 async with asyncio.timeout(float(st.config.get("service", "ws_send_timeout"))):
                     await ws.send_frame(payload, WSMsgType.TEXT)
+                    if subs.get("sh"):
+                        extra = await _sh_payload(st, subs["sh"])
+                        if extra is not None:
+                            await ws.send_frame(extra, WSMsgType.TEXT)
             except (TimeoutError, ConnectionResetError):
                 st.ws_dropped += 1
                 log.info("websocket client %s too slow: dropped", request.remote)
@@ -314,11 +324,48 @@ def _bound_send_buffer(request: web.Request) -> None:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, WS_SNDBUF)
 
 
-async def _drain_incoming(ws: web.WebSocketResponse) -> None:
-    """Process control frames; clients have nothing to say, so text is ignored."""
+async def _drain_incoming(ws: web.WebSocketResponse, subs: dict[str, Any]) -> None:
+    """Process control frames and subscription messages (see :func:`stream`); an invalid
+    subscription gets one error message back and changes nothing."""
+    from device.formats.sh import CONVENTIONS
+
     async for msg in ws:
         if msg.type == WSMsgType.ERROR:
             break
+        if msg.type != WSMsgType.TEXT:
+            continue
+        try:
+            req = json.loads(msg.data)
+        except ValueError:
+            continue
+        if not isinstance(req, dict) or "subscribe" not in req:
+            continue
+        topics, conv = req.get("subscribe"), req.get("convention", "canonical")
+        if not isinstance(topics, list) or not set(map(str, topics)) <= {"sh"} or conv not in CONVENTIONS:
+            with contextlib.suppress(Exception):
+                await ws.send_str(json.dumps({"error": "subscribe takes a list of topics from ['sh'] and a "
+                                              f"convention from {list(CONVENTIONS)}", "param": "subscribe"}))
+            continue
+        if "sh" in topics:
+            subs["sh"] = conv
+        else:
+            subs.pop("sh", None)
+
+
+async def _sh_payload(st: ServiceState, conv: str) -> bytes | None:
+    """The latest frame's SH body in ``conv``, encoded once per frame and convention."""
+    env = st.runner.environment
+    if env is None:
+        return None
+    key = f"sh:{conv}"
+    hit = st.runner.cache.get(key)
+    if hit is not None and hit[0] == int(env.frame):
+        return hit[1]
+    body = env.to_json(conv)
+    body["stale"] = st.runner.stale
+    data = json.dumps(body, separators=(",", ":")).encode()
+    st.runner.cache[key] = (int(env.frame), data)
+    return data
 
 
 def _static_handler(static_dir: Path, name: str) -> Any:

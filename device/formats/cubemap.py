@@ -1,0 +1,399 @@
+"""GGX-prefiltered cubemaps of the probe's map (split-sum specular, as glTF's
+``EXT_lights_image_based``, ``KHR_lights_environment`` and ARCore's reflection cube carry it).
+
+Faces and texels
+- Faces ``+X, -X, +Y, -Y, +Z, -Z`` of the probe frame (+y up), each ``N x N``, row 0 at the top,
+  in the OpenGL / KTX cube-map table: texel (row i, col j) has ``sc = 2 (j + 0.5) / N - 1``,
+  ``tc = 2 (i + 0.5) / N - 1`` and direction
+  ``+X: (1, -tc, -sc)``, ``-X: (-1, -tc, sc)``, ``+Y: (sc, 1, tc)``, ``-Y: (sc, -1, -tc)``,
+  ``+Z: (sc, -tc, 1)``, ``-Z: (-sc, -tc, -1)`` (normalised).
+- Mip ``m`` of ``M`` has size ``max(N >> m, 1)`` and perceptual roughness ``r_m = m / (M - 1)``
+  (GGX ``alpha = r^2``); default ``N = 64`` down to 4, i.e. roughness 0, 0.25, 0.5, 0.75, 1.
+
+The filter (Karis 2013's split-sum prefilter, ``n = v = r``): texel value
+``P(n) = integral L(l) w(n . l) dl / integral w(n . l) dl`` with
+``w(c) = D_GGX(h) max(c, 0)`` and ``(n . h)^2 = (1 + c) / 2``: a function of ``c = n . l``
+alone, so the denominator is a per-mip constant (a 1-D integral, computed once). Mip 0 (roughness
+0, a delta) is the map itself, sampled bilinearly at texel centres.
+
+Evaluation, exact up to a controlled approximation (no Monte Carlo noise): the map is reduced to
+points, each with its power (radiance x solid angle, float64) at its luminance-weighted centroid,
+at two levels (fine: 128 x 256 at most; coarse: 4 x 4 blocks of fine). For an output texel, a
+coarse block within the lobe's near radius is summed from its fine points, a far block as its
+one centroid point: the far field's error is second order in the block size over the distance
+(the GGX tail is smooth there), the near field's in the fine size over the lobe width. Black
+points (the probe's lower hemisphere) are dropped. The tests hold every mip within 1% of the
+brute-force integral over the map's own pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from device.core.errors import InputError
+from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
+
+__all__ = ["FACES", "Cubemap", "CubemapFilter", "face_directions", "ggx_weight", "mip_roughness",
+           "sample_equirect"]
+
+FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+FINE_HEIGHT = 128
+FINE_FRACTION = 0.6  # finest points at most this share of the lobe half-width
+NEAR = 2.0  # cells within this many lobe half-widths of a direction are opened
+MIN_FINE = 64  # finest pyramid level never coarser than this (the horizon clamp needs it)
+HORIZON = True  # open cells across a direction's horizon (rough lobes)
+
+
+def face_directions(n: int) -> np.ndarray:
+    """Unit directions (6, n, n, 3) of the texel centres, faces in :data:`FACES` order."""
+    s = 2.0 * (np.arange(n) + 0.5) / n - 1.0
+    tc, sc = np.meshgrid(s, s, indexing="ij")
+    one = np.ones_like(sc)
+    d = np.stack([
+        np.stack([one, -tc, -sc], -1), np.stack([-one, -tc, sc], -1),
+        np.stack([sc, one, tc], -1), np.stack([sc, -one, -tc], -1),
+        np.stack([sc, -tc, one], -1), np.stack([-sc, -tc, -one], -1)])
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def mip_roughness(levels: int) -> list[float]:
+    return [m / (levels - 1) if levels > 1 else 0.0 for m in range(levels)]
+
+
+def ggx_weight(c: np.ndarray, alpha: float) -> np.ndarray:
+    """``D_GGX(h) max(n . l, 0)`` as a function of ``c = n . l`` (``n = v``)."""
+    c = np.asarray(c, np.float64)
+    a2 = alpha * alpha
+    nh2 = 0.5 * (1.0 + c)
+    den = nh2 * (a2 - 1.0) + 1.0
+    return np.where(c > 0, a2 / (math.pi * den * den) * np.maximum(c, 0.0), 0.0)
+
+
+def ggx_normaliser(alpha: float) -> float:
+    """``integral over the sphere of w(n . l) dl = 2 pi integral_0^1 w(c) dc`` (Gauss-Legendre in
+    a variable that resolves the peak at c = 1 for small alpha)."""
+    # substitute c = 1 - s^2 ... the peak's width in (1 - c) is ~ alpha^2: integrate in u = log(1 - c)
+    x, wq = np.polynomial.legendre.leggauss(400)
+    lo, hi = math.log(1e-12), 0.0
+    u = 0.5 * (hi - lo) * x + 0.5 * (hi + lo)
+    one_minus_c = np.exp(u)
+    c = 1.0 - one_minus_c
+    f = ggx_weight(c, alpha) * one_minus_c  # dc = -(1 - c) du
+    return float(2.0 * math.pi * 0.5 * (hi - lo) * np.dot(wq, f))
+
+
+def _bilinear_taps(h: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel indices (n, 4) and weights (n, 4) of a bilinear lookup at directions (n, 3)."""
+    from device.core.sphere import angles_from_directions
+
+    w = 2 * h
+    theta, phi = angles_from_directions(d)
+    y = theta / math.pi * h - 0.5
+    x = phi / (2 * math.pi) * w - 0.5
+    y0 = np.floor(y).astype(np.int64)
+    x0 = np.floor(x).astype(np.int64)
+    fy, fx = y - y0, x - x0
+    ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
+    xa, xb = x0 % w, (x0 + 1) % w
+    idx = np.stack([ya * w + xa, ya * w + xb, yb * w + xa, yb * w + xb], -1)
+    wts = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
+    return idx, wts.astype(np.float32)
+
+
+def sample_equirect(equirect: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of an (H, 2H, 3) map at unit directions (..., 3) (wraps in phi, clamps
+    at the poles)."""
+    from device.core.sphere import angles_from_directions
+
+    h, w = equirect.shape[:2]
+    theta, phi = angles_from_directions(d)
+    y = theta / math.pi * h - 0.5
+    x = phi / (2 * math.pi) * w - 0.5
+    y0 = np.floor(y).astype(np.int64)
+    x0 = np.floor(x).astype(np.int64)
+    fy, fx = (y - y0)[..., None], (x - x0)[..., None]
+    ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
+    xa, xb = x0 % w, (x0 + 1) % w
+    m = equirect.astype(np.float64, copy=False)
+    return ((1 - fy) * ((1 - fx) * m[ya, xa] + fx * m[ya, xb]) + fy * ((1 - fx) * m[yb, xa] + fx * m[yb, xb]))
+
+
+@numba.njit(cache=True, nogil=True)
+def _pixel_points(equirect: np.ndarray, omega_row: np.ndarray, f: int, pw: np.ndarray,
+                  cen: np.ndarray, mom: np.ndarray, lum: np.ndarray) -> None:  # pragma: no cover
+    """Finest points: f x f blocks of the map -> power, luminance power, and luminance-weighted
+    sums of directions and of their outer products (xx, yy, zz, xy, xz, yz), each (h/f, 2h/f, .)
+    (non-finite and negative values count as 0)."""
+    h, w = equirect.shape[0], equirect.shape[1]
+    pw[:] = 0.0
+    cen[:] = 0.0
+    mom[:] = 0.0
+    lum[:] = 0.0
+    for r in range(h):
+        t = math.pi * (r + 0.5) / h
+        st, ct = math.sin(t), math.cos(t)
+        om = omega_row[r]
+        for c in range(w):
+            red, grn, blu = equirect[r, c, 0], equirect[r, c, 1], equirect[r, c, 2]
+            red = red if red > 0.0 and red < math.inf else 0.0
+            grn = grn if grn > 0.0 and grn < math.inf else 0.0
+            blu = blu if blu > 0.0 and blu < math.inf else 0.0
+            y = LUM_R * red + LUM_G * grn + LUM_B * blu
+            if y <= 0.0:
+                continue
+            p = 2.0 * math.pi * (c + 0.5) / w
+            i, j = r // f, c // f
+            pw[i, j, 0] += red * om
+            pw[i, j, 1] += grn * om
+            pw[i, j, 2] += blu * om
+            yo = y * om
+            dx, dy, dz = st * math.sin(p), ct, -st * math.cos(p)
+            lum[i, j] += yo
+            cen[i, j, 0] += yo * dx
+            cen[i, j, 1] += yo * dy
+            cen[i, j, 2] += yo * dz
+            mom[i, j, 0] += yo * dx * dx
+            mom[i, j, 1] += yo * dy * dy
+            mom[i, j, 2] += yo * dz * dz
+            mom[i, j, 3] += yo * dx * dy
+            mom[i, j, 4] += yo * dx * dz
+            mom[i, j, 5] += yo * dy * dz
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _expected_weight(nx: float, ny: float, nz: float, m: np.ndarray, s: np.ndarray,
+                     k0: float, q: float) -> float:  # pragma: no cover - compiled
+    """E[w(n . l)] over a point's pixels, ``w(c) = g(c) max(c, 0)``, ``g(c) = k0 / (1 + q (1 + c))^2``,
+    from the point's moments: ``c = n . E[l]``, ``var(c) = n^T E[l l^T] n - c^2``.
+    Away from the clamp, to second order: ``w(c) + w''(c) var / 2``. Within three standard
+    deviations of it, the clamp is taken in expectation with ``c`` normal:
+    ``g(c) E[max(c, 0)] = g(c) (c Phi(c / sd) + sd phi(c / sd))``."""
+    c = nx * m[0] + ny * m[1] + nz * m[2]
+    var = (nx * nx * s[0] + ny * ny * s[1] + nz * nz * s[2]
+           + 2.0 * (nx * ny * s[3] + nx * nz * s[4] + ny * nz * s[5])) - c * c
+    sd = math.sqrt(var) if var > 0.0 else 0.0
+    if c < 3.0 * sd:
+        if c < -3.0 * sd or sd <= 0.0:
+            return 0.0
+        den = 1.0 + q * (1.0 + c)
+        z = c / sd
+        clamp = c * 0.5 * math.erfc(-z * 0.7071067811865476) + sd * 0.3989422804014327 * math.exp(-0.5 * z * z)
+        return k0 / (den * den) * clamp
+    den = 1.0 + q * (1.0 + c)
+    inv = 1.0 / den
+    w = k0 * c * inv * inv
+    if var > 0.0:
+        w2 = k0 * inv * inv * inv * (-4.0 * q + 6.0 * c * q * q * inv)
+        w += 0.5 * w2 * var
+        if w < 0.0:
+            w = 0.0
+    return w
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _prefilter_kernel(out_dirs: np.ndarray, alpha: float, inv_norm: float, near_angle: float,
+                      horizon: bool, heights: np.ndarray, offsets: np.ndarray, mean: np.ndarray,
+                      mom: np.ndarray, pw: np.ndarray, lum: np.ndarray,
+                      out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Each output direction walks the point pyramid from its coarsest level (a Barnes-Hut
+    descent): a cell is taken as one point (its moments) unless it lies within ``near_angle``
+    plus 1.5 cell radii of the direction, subtends more than half its distance from it, or
+    (``horizon``) straddles the direction's horizon; then its four children are visited.
+    Cells of the finest level are always points. Levels are stored flat, coarsest first:
+    level k has ``heights[k] x 2 heights[k]`` cells from ``offsets[k]``."""
+    a2 = alpha * alpha
+    k0 = a2 / math.pi
+    q = 0.5 * (a2 - 1.0)
+    nlev = heights.shape[0]
+    for i in numba.prange(out_dirs.shape[0]):
+        nx, ny, nz = out_dirs[i, 0], out_dirs[i, 1], out_dirs[i, 2]
+        r = 0.0
+        g = 0.0
+        b = 0.0
+        stack_l = np.empty(256, np.int64)
+        stack_r = np.empty(256, np.int64)
+        stack_c = np.empty(256, np.int64)
+        top = 0
+        h0 = heights[0]
+        for rr in range(h0):
+            for cc in range(2 * h0):
+                stack_l[top], stack_r[top], stack_c[top] = 0, rr, cc
+                top += 1
+        while top > 0:
+            top -= 1
+            lv, rr, cc = stack_l[top], stack_r[top], stack_c[top]
+            h = heights[lv]
+            k = offsets[lv] + rr * 2 * h + cc
+            if lum[k] <= 0.0:
+                continue
+            m = mean[k]
+            c = nx * m[0] + ny * m[1] + nz * m[2]
+            if lv + 1 < nlev:
+                rho = 1.4142135623730951 * math.pi / h  # the cell's angular radius (bound)
+                ang = math.acos(min(1.0, max(-1.0, c)))
+                if ang < near_angle + 1.5 * rho or rho > 0.5 * ang or (horizon and abs(c) < math.sin(rho)):
+                    for dr in range(2):
+                        for dc in range(2):
+                            stack_l[top], stack_r[top], stack_c[top] = lv + 1, 2 * rr + dr, 2 * cc + dc
+                            top += 1
+                    continue
+            wt = _expected_weight(nx, ny, nz, m, mom[k], k0, q)
+            if wt > 0.0:
+                r += wt * pw[k, 0]
+                g += wt * pw[k, 1]
+                b += wt * pw[k, 2]
+        out[i, 0] = r * inv_norm
+        out[i, 1] = g * inv_norm
+        out[i, 2] = b * inv_norm
+
+
+@dataclass
+class Cubemap:
+    """``mips[m]``: (6, n_m, n_m, 3) float32, faces in :data:`FACES` order; ``roughness[m]``."""
+
+    mips: list[np.ndarray]
+    roughness: list[float]
+
+    @property
+    def size(self) -> int:
+        return int(self.mips[0].shape[1])
+
+
+@dataclass
+class _Level:
+    """Points of one pyramid level: power (h, 2h, 3), luminance power (h, 2h), and the
+    luminance-weighted means of the direction (h, 2h, 3) and of its outer product (h, 2h, 6)."""
+
+    pw: np.ndarray
+    lum: np.ndarray
+    mean: np.ndarray
+    mom: np.ndarray
+
+    @property
+    def height(self) -> int:
+        return int(self.lum.shape[0])
+
+    def merged(self) -> _Level:
+        h, w = self.lum.shape
+
+        def down(a: np.ndarray) -> np.ndarray:
+            return a.reshape(h // 2, 2, w // 2, 2, *a.shape[2:]).sum(axis=(1, 3))
+
+        lum = down(self.lum)
+        return _Level(down(self.pw), lum, _mean(down(self.mean * self.lum[..., None]), lum),
+                      _mean(down(self.mom * self.lum[..., None]), lum))
+
+
+def _mean(total: np.ndarray, lum: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(total / np.where(lum > 0, lum, 1.0)[..., None])
+
+
+def _pyramid(equirect: np.ndarray, top: int = FINE_HEIGHT) -> dict[int, _Level]:
+    """Points of the map at heights top, top/2, ... 2 (keyed by height)."""
+    h, w = equirect.shape[:2]
+    hf = min(top, h)
+    while h % hf:
+        hf //= 2
+    f = h // hf
+    pw = np.empty((hf, 2 * hf, 3))
+    cen = np.empty((hf, 2 * hf, 3))
+    mom = np.empty((hf, 2 * hf, 6))
+    lum = np.empty((hf, 2 * hf))
+    _pixel_points(np.ascontiguousarray(equirect, np.float32), equirect_row_solid_angle(h, w), f,
+                  pw, cen, mom, lum)
+    lv = _Level(pw, lum, _mean(cen, lum), _mean(mom, lum))
+    out = {hf: lv}
+    while lv.height >= 4:
+        lv = lv.merged()
+        out[lv.height] = lv
+    return out
+
+
+def _flat_pyramid(pyr: dict[int, _Level]) -> tuple[np.ndarray, ...]:
+    """Levels of height >= 4, coarsest first, as flat arrays for the kernel: (heights,
+    offsets, mean (n, 3), mom (n, 6), pw (n, 3), lum (n,))."""
+    hs = sorted(h for h in pyr if h >= 4) or [max(pyr)]
+    offs = np.cumsum([0] + [2 * h * h for h in hs[:-1]]).astype(np.int64)
+    cat = [np.ascontiguousarray(np.concatenate([getattr(pyr[h], name).reshape(2 * h * h, -1) for h in hs]))
+           for name in ("mean", "mom", "pw", "lum")]
+    return (np.array(hs, np.int64), offs, cat[0], cat[1], cat[2], cat[3].reshape(-1))
+
+
+class CubemapFilter:
+    """Prefilters maps into :class:`Cubemap` s of one size and mip count (directions, normalisers
+    and near radii computed once)."""
+
+    def __init__(self, size: int = 64, levels: int | None = None, min_size: int = 4) -> None:
+        if size < 1 or size & (size - 1) or size > 1024:
+            raise InputError(f"cubemap size must be a power of two in [1, 1024], got {size}", param="size")
+        if levels is None:
+            levels = int(math.log2(size // max(min_size, 1))) + 1 if size >= min_size else 1
+        if not 1 <= levels <= int(math.log2(size)) + 1:
+            raise InputError(f"cubemap levels must be in [1, {int(math.log2(size)) + 1}], got {levels}",
+                             param="levels")
+        self.size, self.levels = size, levels
+        self.roughness = mip_roughness(levels)
+        self._dirs = [face_directions(max(size >> m, 1)) for m in range(levels)]
+        self._alpha = [max(r * r, 1e-4) for r in self.roughness]
+        self._norm = [ggx_normaliser(a) for a in self._alpha]
+        self._bilinear: tuple[tuple[int, int], tuple[np.ndarray, np.ndarray]] | None = None
+
+    def _plan(self, m: int) -> tuple[int, float, bool]:
+        """Finest pyramid height, near angle and horizon flag for mip ``m``: the finest points
+        at most ``FINE_FRACTION`` of the lobe's half-width (GGX half-width in l
+        ~ 2 atan(0.64 alpha)), never coarser than MIN_FINE rows; cells within ``NEAR`` half-widths are
+        opened; cells across the direction's horizon are opened where the lobe still has weight
+        there (``w'(0) / w(1) = 4 alpha^4 >= 1e-3``)."""
+        half = 2.0 * math.atan(0.64 * self._alpha[m])
+        fine = FINE_HEIGHT
+        while fine > MIN_FINE and math.pi / (fine // 2) <= FINE_FRACTION * half:
+            fine //= 2
+        return fine, NEAR * half, HORIZON and 4.0 * self._alpha[m] ** 4 >= 1e-3
+
+    def filter(self, equirect: np.ndarray) -> Cubemap:
+        a = np.asarray(equirect)
+        if a.ndim != 3 or a.shape[2] != 3 or a.shape[1] != 2 * a.shape[0]:
+            raise InputError(f"expected an (H, 2H, 3) equirect map, got shape {a.shape}", param="equirect")
+        mips = [self._mip0(a)]
+        if self.levels > 1:
+            flat = _flat_pyramid(_pyramid(a))
+            heights, offsets = flat[0], flat[1]
+            for m in range(1, self.levels):
+                dirs = self._dirs[m].reshape(-1, 3)
+                out = np.zeros((len(dirs), 3))
+                fine_h, near, horizon = self._plan(m)
+                n = int(np.searchsorted(heights, min(fine_h, int(heights[-1])))) + 1
+                mean, mom, pw, lum = flat[2:]
+                _prefilter_kernel(dirs, self._alpha[m], 1.0 / self._norm[m], near, horizon,
+                                  heights[:n], offsets[:n], mean, mom, pw, lum, out)
+                mips.append(out.reshape(self._dirs[m].shape).astype(np.float32))
+        return Cubemap(mips, list(self.roughness))
+
+    def _mip0(self, a: np.ndarray) -> np.ndarray:
+        """Roughness 0: the map at texel centres, bilinear (indices and weights cached per map size)."""
+        h = a.shape[0]
+        key = (h, self.size)
+        if self._bilinear is None or self._bilinear[0] != key:
+            self._bilinear = (key, _bilinear_taps(h, self._dirs[0].reshape(-1, 3)))
+        idx, wts = self._bilinear[1]
+        flat = a.reshape(-1, 3)
+        px = flat[idx]  # (n, 4, 3)
+        px = np.where(np.isfinite(px) & (px > 0), px, np.float32(0))
+        return np.einsum("nk,nkc->nc", wts, px).reshape(6, self.size, self.size, 3).astype(np.float32)
+
+    def brute_force(self, equirect: np.ndarray, mip: int, dirs: np.ndarray) -> np.ndarray:
+        """The reference: the filter integral over every pixel of the map at ``dirs`` (k, 3)."""
+        from device.core.sphere import equirect_directions
+
+        a = np.where(np.isfinite(equirect) & (equirect > 0), equirect, 0).astype(np.float64)
+        h = a.shape[0]
+        d = equirect_directions(h).reshape(-1, 3)
+        pw = a.reshape(-1, 3) * np.repeat(equirect_row_solid_angle(h), 2 * h)[:, None]
+        if mip == 0:
+            return sample_equirect(a, dirs)
+        wts = ggx_weight(np.asarray(dirs) @ d.T, self._alpha[mip])
+        return wts @ pw / self._norm[mip]

@@ -1,0 +1,191 @@
+"""Order-2 spherical harmonics of a radiance map, and each host engine's own SH convention.
+
+Canonical convention (what ``GET /api/v1/sh?convention=canonical`` serves)
+------------------------------------------------------------------------
+- *Radiance* coefficients ``c_i = integral L(w) Y_i(w) dw`` (the map's unit x sr, like a light's
+  ``rgb``), 9 per channel (RGB), index ``i = l(l+1)+m``.
+- The real, orthonormal basis *without* the Condon-Shortley phase, written in the probe frame's
+  own axes (right-handed, +y up; CONVENTIONS.md):
+  ``Y0 = k0``, ``Y1 = k1 y``, ``Y2 = k1 z``, ``Y3 = k1 x``, ``Y4 = k2 xy``, ``Y5 = k2 yz``,
+  ``Y6 = k3 (3 z^2 - 1)``, ``Y7 = k2 xz``, ``Y8 = k4 (x^2 - y^2)`` with
+  ``k0 = sqrt(1/4pi)``, ``k1 = sqrt(3/4pi)``, ``k2 = sqrt(15/4pi)``, ``k3 = sqrt(5/16pi)``,
+  ``k4 = sqrt(15/16pi)``. This is three.js's ``SphericalHarmonics3`` basis; the probe frame and
+  three.js's world share their axes, so three.js takes these coefficients unchanged.
+- Irradiance (Ramamoorthi and Hanrahan 2001): ``E(n) = sum_i A_l(i) c_i Y_i(n)`` with
+  ``A_0 = pi``, ``A_1 = 2 pi / 3``, ``A_2 = pi / 4``. A Lambertian surface of albedo ``rho`` then
+  has radiance ``rho E / pi``.
+
+Projection: exact per-pixel solid angles (CONVENTIONS.md), basis at pixel centres, float64 sums.
+:class:`SHProjector` keeps the map it last saw and updates the sums from the changed pixels only
+(``c += B[:, changed] (new - old)``), re-summing everything every ``refresh`` frames so float64
+drift never accumulates.
+
+Host conventions (:func:`to_convention`; facts and sources in ``../shared/NOTES.md``)
+- ``threejs``: the canonical coefficients (``LightProbe.sh``; ``getIrradianceAt`` = E).
+- ``webxr``: the same 27 numbers flattened ``[r0, g0, b0, r1, ...]``: three.js's
+  ``XREstimatedLight`` copies ``sphericalHarmonicsCoefficients`` straight into its
+  ``SphericalHarmonics3``, so that is the normalisation a WebXR consumer reads.
+- ``filament``: ``IndirectLight.irradiance(3, sh)``: pre-convolved, ``sh_i = L_i K_i`` with
+  ``L_i`` on Filament's Condon-Shortley basis (signs on 1, 3, 5, 7) and
+  ``K = 0.282095, -0.325735, 0.325735, -0.325735, 0.273137, -0.273137, 0.078848, -0.273137,
+  0.136569``; the two sign sets cancel, so ``sh_i = c_i |K_i|`` and the shader's plain
+  polynomial returns ``E / pi``. Right-handed, +y up: the probe frame's axes.
+- ``unity``: ``SphericalHarmonicsL2`` holds the same pre-convolved numbers in Unity's
+  left-handed world (``z_unity = -z_probe``), so the terms odd in z (2: z, 5: yz, 7: xz) change
+  sign; ``SHEvalLinearL0L1 + SHEvalLinearL2`` then return ``E / pi``. Served as ``[[r, g, b] x 9]``;
+  Unity indexes ``sh[channel, i]``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from device.core.errors import InputError
+from device.core.sphere import equirect_directions, equirect_row_solid_angle
+
+__all__ = [
+    "BAND",
+    "BASIS_CONSTANTS",
+    "CONVENTIONS",
+    "FILAMENT_K",
+    "ZONAL_IRRADIANCE",
+    "SHProjector",
+    "irradiance",
+    "project",
+    "sh_basis",
+    "to_convention",
+]
+
+K0 = math.sqrt(1.0 / (4.0 * math.pi))
+K1 = math.sqrt(3.0 / (4.0 * math.pi))
+K2 = math.sqrt(15.0 / (4.0 * math.pi))
+K3 = math.sqrt(5.0 / (16.0 * math.pi))
+K4 = math.sqrt(15.0 / (16.0 * math.pi))
+BASIS_CONSTANTS = np.array([K0, K1, K1, K1, K2, K2, K3, K2, K4])
+BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
+# Clamped-cosine convolution per band (Ramamoorthi and Hanrahan 2001)
+ZONAL_IRRADIANCE = np.array([math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0])[BAND]
+# Filament's table as its docs print it (signed: Condon-Shortley basis)
+FILAMENT_K = np.array([0.282095, -0.325735, 0.325735, -0.325735, 0.273137, -0.273137,
+                       0.078848, -0.273137, 0.136569])
+# Exact magnitudes of that table: A_l / pi x basis constant
+_PRECONVOLVED = ZONAL_IRRADIANCE / math.pi * BASIS_CONSTANTS
+_Z_ODD = np.array([1, 1, -1, 1, 1, -1, 1, -1, 1], np.float64)  # z -> -z (Unity's left hand)
+
+CONVENTIONS = ("canonical", "threejs", "webxr", "filament", "unity")
+
+
+def sh_basis(d: np.ndarray) -> np.ndarray:
+    """The canonical basis (..., 9) at unit directions ``d`` (..., 3), float64."""
+    d = np.asarray(d, np.float64)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    one = np.ones_like(x)
+    return np.stack([K0 * one, K1 * y, K1 * z, K1 * x, K2 * x * y, K2 * y * z,
+                     K3 * (3.0 * z * z - 1.0), K2 * x * z, K4 * (x * x - y * y)], axis=-1)
+
+
+def _weights(height: int, rows: int) -> np.ndarray:
+    """``Y_i(centre) x solid angle`` for the first ``rows`` rows of a (height, 2 height) map:
+    (9, rows * 2 height) float64."""
+    d = equirect_directions(height)[:rows]
+    omega = equirect_row_solid_angle(height)[:rows]
+    w = sh_basis(d) * omega[:, None, None]
+    return np.ascontiguousarray(w.reshape(-1, 9).T)
+
+
+def project(equirect: np.ndarray) -> np.ndarray:
+    """Canonical radiance coefficients (9, 3) float64 of an (H, 2H, 3) map (NaN/inf and
+    negative values count as 0, like every sampler's input)."""
+    a = _check(equirect)
+    clean = np.where(np.isfinite(a) & (a > 0), a, 0).astype(np.float64)
+    return _weights(a.shape[0], a.shape[0]) @ clean.reshape(-1, 3)
+
+
+def irradiance(coefficients: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Irradiance (..., 3) at unit ``normals`` (..., 3) of canonical coefficients (9, 3)."""
+    c = np.asarray(coefficients, np.float64) * ZONAL_IRRADIANCE[:, None]
+    return sh_basis(normals) @ c
+
+
+def to_convention(coefficients: np.ndarray, convention: str) -> np.ndarray:
+    """Canonical coefficients (9, 3) -> the host convention's (9, 3) (``webxr``: flatten the
+    result row-major for its 27 floats)."""
+    c = np.asarray(coefficients, np.float64)
+    if convention in ("canonical", "threejs", "webxr"):
+        return c.copy()
+    if convention == "filament":
+        return c * _PRECONVOLVED[:, None]
+    if convention == "unity":
+        return c * (_PRECONVOLVED * _Z_ODD)[:, None]
+    raise InputError(f"convention must be one of {', '.join(CONVENTIONS)}, got {convention[:40]!r}",
+                     param="convention")
+
+
+def direction_to_convention(d: np.ndarray, convention: str) -> np.ndarray:
+    """A probe-frame direction in the host's world axes (Unity: z flips)."""
+    v = np.asarray(d, np.float64).copy()
+    if convention == "unity":
+        v[..., 2] = -v[..., 2]
+    return v
+
+
+def _check(equirect: Any) -> np.ndarray:
+    a = np.asarray(equirect)
+    if a.ndim != 3 or a.shape[2] != 3 or a.shape[1] != 2 * a.shape[0]:
+        raise InputError(f"expected an (H, 2H, 3) equirect map, got shape {a.shape}", param="equirect")
+    return a
+
+
+class SHProjector:
+    """Incremental canonical SH of successive maps of one size.
+
+    ``rows``: only the first ``rows`` rows are read (the probe's maps are zero below the
+    horizon: ``rows = H // 2`` halves the work; default all). ``update(map)`` returns the
+    coefficients (9, 3) float64 and counts the pixels it re-read in ``last_changed``.
+    """
+
+    def __init__(self, height: int, rows: int | None = None, refresh: int = 256) -> None:
+        if height < 2 or height % 2:
+            raise InputError(f"equirect height must be even and >= 2, got {height}", param="equirect_height")
+        self.height = int(height)
+        self.rows = self.height if rows is None else int(rows)
+        if not 1 <= self.rows <= self.height:
+            raise InputError(f"rows must be in [1, {self.height}], got {rows}", param="rows")
+        self.refresh = int(refresh)
+        self._w = _weights(self.height, self.rows)  # (9, P)
+        self._prev: np.ndarray | None = None  # (P, 3) float32, cleaned
+        self.coefficients = np.zeros((9, 3))
+        self.last_changed = 0
+        self._since_full = 0
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._w.nbytes + (self._prev.nbytes if self._prev is not None else 0))
+
+    def update(self, equirect: np.ndarray) -> np.ndarray:
+        a = _check(equirect)
+        if a.shape[0] != self.height:
+            raise InputError(f"map height {a.shape[0]} != projector height {self.height}", param="equirect")
+        cur = np.asarray(a[: self.rows], np.float32).reshape(-1, 3)
+        bad = ~(np.isfinite(cur) & (cur >= 0))
+        if bad.any():
+            cur = np.where(bad, np.float32(0), cur)
+        prev = self._prev
+        self._since_full += 1
+        if prev is None or self._since_full >= self.refresh:
+            self.coefficients = self._w @ cur.astype(np.float64)
+            self.last_changed, self._since_full = cur.shape[0], 0
+        else:
+            changed = np.flatnonzero((cur != prev).any(axis=1))
+            self.last_changed = int(changed.size)
+            if changed.size > cur.shape[0] // 3:  # a dense update costs more than a re-sum
+                self.coefficients = self._w @ cur.astype(np.float64)
+                self._since_full = 0
+            elif changed.size:
+                delta = cur[changed].astype(np.float64) - prev[changed]
+                self.coefficients = self.coefficients + self._w[:, changed] @ delta
+        self._prev = np.array(cur, copy=True)
+        return self.coefficients

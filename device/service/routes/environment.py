@@ -1,0 +1,278 @@
+"""Host formats of the live lighting (``device.formats``), under ``/api/v1``:
+
+- ``GET sh?convention=canonical|threejs|webxr|filament|unity``: order-2 SH (all light and
+  ambient) plus the primary light, JSON (``device.formats.environment``), every frame;
+- ``GET cubemap.ktx2?size=N&levels=M``: the GGX-prefiltered cube map (RGBA16F KTX2), and
+  ``GET cubemap/{px,nx,py,ny,pz,nz}.exr?mip=m`` its faces as float32 EXR;
+- ``GET environment.gltf`` (+ ``environment/*.png``) and ``GET environment.usda`` (+ the latlong
+  EXR files beside it): scene files with the probe's pose applied;
+- ``GET /view``: a live three.js view lit by all of it.
+
+The SH and primary light are computed by the frame loop (``Runner.environment``). Cubemaps and
+scene files are built on request in a worker thread and kept until the *lighting* changes (keyed
+by a digest of the map, not by frame: a static room is filtered once). The map's pixels are an
+image of the room: everything here except ``sh`` needs the token unless
+``service.public_images`` (``device.service.app.PRIVATE_PREFIXES``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from aiohttp import web
+
+from device.core.errors import InputError
+from device.formats.sh import CONVENTIONS
+from device.service.errors import ApiError
+from device.service.state import STATE, ServiceState
+
+__all__ = ["add_routes"]
+
+API = "/api/v1"
+FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
+MAX_SIZE = 256
+_CACHE_ENTRIES = 8
+
+
+def _check_query(request: web.Request, allowed: set[str]) -> None:
+    for k in request.query:
+        if k not in allowed and k not in ("access_token", "t"):
+            raise InputError(f"unknown query parameter {k[:40]!r}", param=k[:40])
+
+
+def _int(request: web.Request, name: str, lo: int, hi: int, default: int, *, power_of_two: bool = False) -> int:
+    raw = request.query.get(name)
+    if raw is None:
+        return default
+    what = f"{name} must be {'a power of two' if power_of_two else 'an integer'} in [{lo}, {hi}]"
+    try:
+        v = int(raw)
+    except ValueError:
+        raise InputError(f"{what}, got {raw[:40]!r}", param=name) from None
+    if not lo <= v <= hi or (power_of_two and v & (v - 1)):
+        raise InputError(f"{what}, got {v}", param=name)
+    return v
+
+
+def _latest(st: ServiceState) -> tuple[Any, Any]:
+    r, env = st.runner.result, st.runner.environment
+    if r is None or env is None:
+        raise ApiError(503, "no frame yet: the pipeline is starting or the camera is reconnecting",
+                       param="camera", headers={"Retry-After": "1"})
+    return r, env
+
+
+def _digest(equirect: np.ndarray) -> str:
+    return hashlib.blake2b(np.ascontiguousarray(equirect).tobytes(), digest_size=16).hexdigest()
+
+
+class _LightingCache:
+    """Products of the map kept until the lighting changes: ``{(kind, params): (digest, value)}``."""
+
+    def __init__(self) -> None:
+        self.items: dict[tuple[Any, ...], tuple[str, Any]] = {}
+        self.filters: dict[tuple[int, int], Any] = {}
+        self.builds = 0
+
+    async def get(self, key: tuple[Any, ...], digest: str, build: Any) -> Any:
+        hit = self.items.get(key)
+        if hit is not None and hit[0] == digest:
+            return hit[1]
+        value = await asyncio.to_thread(build)
+        self.builds += 1
+        if len(self.items) >= _CACHE_ENTRIES:
+            self.items.pop(next(iter(self.items)))
+        self.items[key] = (digest, value)
+        return value
+
+    def filter(self, size: int, levels: int) -> Any:
+        from device.formats.cubemap import CubemapFilter
+
+        f = self.filters.get((size, levels))
+        if f is None:
+            f = self.filters[(size, levels)] = CubemapFilter(size, levels)
+        return f
+
+
+CACHE: web.AppKey[_LightingCache] = web.AppKey("lighting_cache", _LightingCache)
+
+
+def _cube_params(request: web.Request) -> tuple[int, int]:
+    size = _int(request, "size", 1, MAX_SIZE, 64, power_of_two=True)
+    max_levels = size.bit_length()
+    default_levels = max(1, min(max_levels, size.bit_length() - 2)) if size >= 4 else max_levels
+    return size, _int(request, "levels", 1, max_levels, default_levels)
+
+
+async def _map_digest(st: ServiceState, r: Any) -> str:
+    key = f"digest:{int(r.frame)}"
+    hit = st.runner.cache.get(key)
+    if hit is not None:
+        return hit[1].decode()
+    d = await asyncio.to_thread(_digest, r.equirect)
+    st.runner.cache[key] = (int(r.frame), d.encode())
+    return d
+
+
+async def sh(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    _check_query(request, {"convention"})
+    conv = request.query.get("convention", "canonical")
+    if conv not in CONVENTIONS:
+        raise InputError(f"convention must be one of {', '.join(CONVENTIONS)}, got {conv[:40]!r}",
+                         param="convention")
+    _, env = _latest(st)
+    body = env.to_json(conv)
+    body["stale"] = st.runner.stale
+    return web.json_response(body)
+
+
+async def cubemap_ktx2(request: web.Request) -> web.Response:
+    from device.formats.ktx2 import ktx2_cubemap_bytes
+
+    st = request.app[STATE]
+    _check_query(request, {"size", "levels"})
+    size, levels = _cube_params(request)
+    r, env = _latest(st)
+    cache = request.app[CACHE]
+    digest = await _map_digest(st, r)
+    flt = cache.filter(size, levels)
+
+    def build() -> bytes:
+        cm = flt.filter(r.equirect)
+        return ktx2_cubemap_bytes(cm.mips, {"lightprobe.roughness": ",".join(f"{x:g}" for x in cm.roughness),
+                                            "lightprobe.unit": str(env.unit),
+                                            "lightprobe.faces": "+X,-X,+Y,-Y,+Z,-Z probe frame, +y up"})
+
+    data = await cache.get(("ktx2", size, levels), digest, build)
+    return web.Response(body=data, content_type="image/ktx2",
+                        headers={"Content-Disposition": 'inline; filename="cubemap.ktx2"',
+                                 "X-Lightprobe-Frame": str(int(r.frame))})
+
+
+async def cubemap_face(request: web.Request) -> web.Response:
+    from device.core.imageio import exr_bytes
+
+    st = request.app[STATE]
+    _check_query(request, {"size", "levels", "mip"})
+    face = request.match_info["face"]
+    if face not in FACE_NAMES:
+        raise ApiError(404, f"no face {face[:8]!r}: faces are {', '.join(FACE_NAMES)}", param="face")
+    size, levels = _cube_params(request)
+    mip = _int(request, "mip", 0, levels - 1, 0)
+    r, env = _latest(st)
+    cache = request.app[CACHE]
+    digest = await _map_digest(st, r)
+    flt = cache.filter(size, levels)
+    cm = await cache.get(("cube", size, levels), digest, lambda: flt.filter(r.equirect))
+    meta = {"unit": str(env.unit), "probe": st.probe_id, "frame": str(int(r.frame)), "face": face,
+            "mip": str(mip), "roughness": f"{cm.roughness[mip]:g}",
+            "cube_convention": "OpenGL/KTX face table, probe frame +y up, row 0 at top"}
+    data = await asyncio.to_thread(exr_bytes, cm.mips[mip][FACE_NAMES.index(face)], meta)
+    return web.Response(body=data, content_type="image/x-exr")
+
+
+async def _scene(request: web.Request) -> tuple[dict[str, Any], dict[str, bytes], str]:
+    """The glTF document and images, and the USD text, of the latest lighting (cached)."""
+    from device.formats.cubemap import CubemapFilter
+    from device.formats.primary import ambient_map
+    from device.formats.scene import gltf_environment, usd_environment
+
+    st = request.app[STATE]
+    r, env = _latest(st)
+    cache = request.app[CACHE]
+    digest = await _map_digest(st, r)
+    size = 64
+
+    def build() -> tuple[dict[str, Any], dict[str, bytes], str]:
+        from device.core.imageio import exr_bytes
+
+        amb = ambient_map(r.equirect, env.primary)
+        cm = CubemapFilter(size).filter(amb)
+        doc, files = gltf_environment(env, cm)
+        meta = {"unit": str(env.unit), "probe": st.probe_id, "frame": str(int(r.frame)),
+                "layout": "latlong (OpenEXR / UsdLux): the probe frame's equirect"}
+        files["environment_latlong.exr"] = exr_bytes(np.asarray(r.equirect, np.float32), meta)
+        files["environment_ambient_latlong.exr"] = exr_bytes(amb, meta)
+        return doc, files, usd_environment(env)
+
+    return await cache.get(("scene",), digest, build)  # type: ignore[no-any-return]
+
+
+def _with_token(doc: dict[str, Any], request: web.Request) -> dict[str, Any]:
+    """Image URIs that carry the request's ``access_token`` (a loader fetching them relative to
+    the document cannot add a header)."""
+    tok = request.query.get("access_token")
+    if not tok:
+        return doc
+    from urllib.parse import quote
+
+    doc = json.loads(json.dumps(doc))
+    for im in doc.get("images", []):
+        im["uri"] = f"{im['uri']}?access_token={quote(tok)}"
+    return doc
+
+
+async def environment_gltf(request: web.Request) -> web.Response:
+    _check_query(request, set())
+    doc, _, _ = await _scene(request)
+    return web.Response(body=json.dumps(_with_token(doc, request)).encode(), content_type="model/gltf+json")
+
+
+async def environment_file(request: web.Request) -> web.Response:
+    _check_query(request, set())
+    name = request.match_info["name"]
+    _, files, _ = await _scene(request)
+    key = f"environment/{name}"
+    if key not in files:
+        raise ApiError(404, f"no environment image {name[:60]!r}", param="name")
+    return web.Response(body=files[key], content_type="image/png")
+
+
+async def environment_usda(request: web.Request) -> web.Response:
+    _check_query(request, set())
+    _, _, text = await _scene(request)
+    return web.Response(text=text, content_type="model/vnd.usda",
+                        headers={"Content-Disposition": 'inline; filename="environment.usda"'})
+
+
+def _latlong(name: str) -> Any:
+    async def handler(request: web.Request) -> web.Response:
+        _check_query(request, set())
+        _, files, _ = await _scene(request)
+        return web.Response(body=files[name], content_type="image/x-exr")
+
+    return handler
+
+
+def _static(path: Path, content_type: str) -> Any:
+    present = path.is_file()  # a fixed file of the install: checked once, at start
+
+    async def handler(request: web.Request) -> web.StreamResponse:
+        if not present:
+            raise web.HTTPNotFound()
+        return web.FileResponse(path, headers={"Content-Type": content_type})
+
+    return handler
+
+
+def add_routes(app: web.Application, static_dir: Path) -> None:
+    app[CACHE] = _LightingCache()
+    r = app.router
+    r.add_get(f"{API}/sh", sh)
+    r.add_get(f"{API}/cubemap.ktx2", cubemap_ktx2)
+    r.add_get(f"{API}/cubemap/{{face}}.exr", cubemap_face)
+    r.add_get(f"{API}/environment.gltf", environment_gltf)
+    r.add_get(f"{API}/environment/{{name}}", environment_file)
+    r.add_get(f"{API}/environment.usda", environment_usda)
+    for name in ("environment_latlong.exr", "environment_ambient_latlong.exr"):
+        r.add_get(f"{API}/{name}", _latlong(name))
+    r.add_get("/view", _static(static_dir / "view.html", "text/html"))
+    r.add_get("/static/view.js", _static(static_dir / "view.js", "text/javascript"))
+    r.add_get("/static/vendor/three.module.min.js", _static(static_dir / "vendor" / "three.module.min.js",
+                                                           "text/javascript"))
