@@ -188,7 +188,7 @@ class ProbeClient:
     async def cubemap(self, size: int = 64, levels: int | None = None) -> CubeMap:
         """``GET /cubemap.ktx2`` (needs the token unless ``service.public_images``): the
         GGX-prefiltered cube map, decoded."""
-        from device.formats.ktx2 import read_ktx2_cubemap
+        from device.core.ktx2 import read_ktx2_cubemap
 
         from .formats import CubeMap
 

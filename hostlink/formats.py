@@ -99,6 +99,6 @@ class EnvironmentFiles:
 
 def sh_from_map(equirect: np.ndarray, convention: str = "canonical", **meta: Any) -> SHLighting:
     """The probe's SH + primary light of an equirect map, computed here (offline)."""
-    from device.formats.environment import EnvironmentEstimator
+    from device.core.environment import EnvironmentEstimator
 
     return SHLighting.from_json(EnvironmentEstimator().estimate(equirect, **meta).to_json(convention))

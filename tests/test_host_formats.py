@@ -1,7 +1,7 @@
 """Host formats (#16): SH in each engine's convention, the primary light, GGX cube maps, KTX2.
 
 The host shader formulas below are written from the hosts' own sources (``../shared/NOTES.md``
-"Host formats"), independently of ``device.formats.sh``: a convention that is off in order, sign,
+"Host formats"), independently of ``device.core.sh``: a convention that is off in order, sign,
 handedness or normalisation fails the 0.5% bound by far (checked: the wrong variants below).
 """
 
@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from device.core.environment import EnvironmentEstimator
 from device.core.imageio import read_hdr_image
+from device.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
+from device.core.primary import ambient_map, extract_primary
+from device.core.sh import SHProjector, irradiance, project, to_convention
 from device.core.sphere import equirect_row_solid_angle
 from device.formats.cubemap import FACES, CubemapFilter, face_directions, sample_equirect
-from device.formats.environment import EnvironmentEstimator
-from device.formats.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
-from device.formats.primary import ambient_map, extract_primary
-from device.formats.sh import SHProjector, irradiance, project, to_convention
 from device.sampling.peaks import coarse_equirect
 
 ENVMAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from service_harness import running_service, service_config
 
+from device.core.environment import EnvironmentEstimator
 from device.core.imageio import read_hdr_image
+from device.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
+from device.core.primary import ambient_map
 from device.formats.cubemap import CubemapFilter
-from device.formats.environment import EnvironmentEstimator
-from device.formats.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
-from device.formats.primary import ambient_map
 from device.formats.scene import gltf_environment, usd_environment
 from device.sampling.peaks import coarse_equirect
 

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from device.core.environment import EnvironmentEstimator
 from device.core.imageio import read_hdr_image
-from device.formats.environment import EnvironmentEstimator
-from device.formats.sh import irradiance
+from device.core.sh import irradiance
 from device.sampling.peaks import coarse_equirect
 
 pytestmark = pytest.mark.browser
@@ -188,3 +188,41 @@ async def test_threejs_renders_the_probe_sh_and_the_webxr_estimate(shared_data: 
     assert err_xr.max() <= 0.02, (got_xr, want_xr)
     err_bad = np.abs(got_bad - want_sh).max(axis=1) / np.maximum(np.abs(want_sh).max(axis=1), 0.05 * scale_sh)
     assert err_bad.max() > 0.05  # the check sees an index swap
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium not installed (apt-get install chromium)")
+@pytest.mark.timeout(300)
+async def test_live_view_page_updates_from_the_stream(tmp_path: Path, artifacts_dir: Path) -> None:
+    """``/view`` (linked from the dashboard) follows the stream's SH and loads the cube map."""
+    from playwright.async_api import async_playwright
+    from service_harness import running_service, service_config
+
+    cfg = service_config(tmp_path, pipeline={"fps": 10.0, "light_count": 64})
+    async with running_service(cfg) as s, async_playwright() as p:
+        browser = await p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        try:
+            page = await browser.new_page(viewport={"width": 960, "height": 540})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            await page.goto(s.url + "/")
+            assert await page.get_attribute("a[href='/view']", "href") == "/view"
+            await page.goto(s.url + "/view#token=" + s.token)
+            await page.wait_for_function("document.getElementById('view-status').textContent.includes('live')",
+                                         timeout=120_000)
+            f1 = await page.evaluate("+document.getElementById('view-status').textContent.match(/frame (\\d+)/)[1]")
+            await page.wait_for_function(f"+document.getElementById('view-status').textContent.match(/frame (\\d+)/)[1] > {f1}",
+                                         timeout=30_000)
+            # the probe's SH reached three.js's LightProbe, and the cube map became the environment
+            sh0 = await page.evaluate("window.lightprobeView.probe.sh.coefficients[0].toArray()")
+            assert max(sh0) > 0
+            await page.wait_for_function("!!window.lightprobeView.scene.children.find(o => o.material && o.material.envMap)",
+                                         timeout=60_000)
+            shot = artifacts_dir / "view.png"
+            await page.screenshot(path=str(shot))
+            import cv2
+
+            img = cv2.imread(str(shot))
+            assert img is not None and float(img.std()) > 5.0  # the spheres are drawn, not a flat frame
+            assert not errors, errors
+        finally:
+            await browser.close()

@@ -27,7 +27,7 @@ FORMATS = ("gltf", "usd", "sh", "ktx2")
 
 
 def _parser() -> argparse.ArgumentParser:
-    from .sh import CONVENTIONS
+    from device.core.sh import CONVENTIONS
 
     p = argparse.ArgumentParser(prog="lightprobe export",
                                 description="Write an equirect HDR map as a host engine's lighting: "
@@ -58,13 +58,13 @@ def _pose(path: Path | None) -> dict[str, Any] | None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from device.core.environment import EnvironmentEstimator
     from device.core.fsutil import atomic_write
     from device.core.imageio import exr_bytes, read_hdr_image
+    from device.core.ktx2 import ktx2_cubemap_bytes
+    from device.core.primary import ambient_map
 
     from .cubemap import CubemapFilter
-    from .environment import EnvironmentEstimator
-    from .ktx2 import ktx2_cubemap_bytes
-    from .primary import ambient_map
     from .scene import gltf_bytes, gltf_environment, usd_environment
 
     image = read_hdr_image(args.map)

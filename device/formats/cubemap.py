@@ -16,14 +16,19 @@ The filter (Karis 2013's split-sum prefilter, ``n = v = r``): texel value
 alone, so the denominator is a per-mip constant (a 1-D integral, computed once). Mip 0 (roughness
 0, a delta) is the map itself, sampled bilinearly at texel centres.
 
-Evaluation, exact up to a controlled approximation (no Monte Carlo noise): the map is reduced to
-points, each with its power (radiance x solid angle, float64) at its luminance-weighted centroid,
-at two levels (fine: 128 x 256 at most; coarse: 4 x 4 blocks of fine). For an output texel, a
-coarse block within the lobe's near radius is summed from its fine points, a far block as its
-one centroid point: the far field's error is second order in the block size over the distance
-(the GGX tail is smooth there), the near field's in the fine size over the lobe width. Black
-points (the probe's lower hemisphere) are dropped. The tests hold every mip within 1% of the
-brute-force integral over the map's own pixels.
+Evaluation: exact up to a controlled approximation, no Monte Carlo noise. The map becomes a
+pyramid of points (128 x 256 at most, then 2 x 2 merges down to 4 x 8), each holding its power
+(radiance x solid angle, float64), luminance power, and the luminance-weighted mean direction
+``E[l]`` and second moment ``E[l l^T]`` of its pixels. Each output direction walks the pyramid
+from the top (a Barnes-Hut descent): a cell is opened into its four children when it lies within
+``NEAR`` lobe half-widths plus ``MARGIN`` cell radii, subtends more than half its distance, or
+(rough lobes) straddles the direction's horizon; otherwise it counts as one point with
+``E[w] ~ w(c) + w''(c) var(c) / 2`` (``c = n . E[l]``, ``var`` from the second moment), and
+``g(c) E[max(c, 0)]`` under a normal ``c`` within three deviations of the clamp. The finest
+level used is the one whose cells are at most ``FINE_FRACTION`` of the lobe half-width (never
+coarser than ``MIN_FINE`` rows). Black cells (the probe's lower hemisphere) are skipped. The
+tests hold every mip within 1% of the brute-force integral over the map's own pixels (measured
+worst 0.52% over four maps, sphere and hemisphere).
 """
 
 from __future__ import annotations
@@ -42,10 +47,12 @@ __all__ = ["FACES", "Cubemap", "CubemapFilter", "face_directions", "ggx_weight",
 
 FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 FINE_HEIGHT = 128
-FINE_FRACTION = 0.6  # finest points at most this share of the lobe half-width
+FINE_FRACTION = 0.7  # finest points at most this share of the lobe half-width
 NEAR = 2.0  # cells within this many lobe half-widths of a direction are opened
 MIN_FINE = 64  # finest pyramid level never coarser than this (the horizon clamp needs it)
-HORIZON = True  # open cells across a direction's horizon (rough lobes)
+HORIZON = True  # open cells across a direction's horizon (rough lobes) ...
+HORIZON_HEIGHT = 64  # ... if coarser than this level's cells
+MARGIN = 1.0  # the near field reaches this many cell radii beyond NEAR half-widths
 
 
 def face_directions(n: int) -> np.ndarray:
@@ -196,7 +203,7 @@ def _expected_weight(nx: float, ny: float, nz: float, m: np.ndarray, s: np.ndarr
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _prefilter_kernel(out_dirs: np.ndarray, alpha: float, inv_norm: float, near_angle: float,
-                      horizon: bool, heights: np.ndarray, offsets: np.ndarray, mean: np.ndarray,
+                      margin: float, horizon_rho: float, heights: np.ndarray, offsets: np.ndarray, mean: np.ndarray,
                       mom: np.ndarray, pw: np.ndarray, lum: np.ndarray,
                       out: np.ndarray) -> None:  # pragma: no cover - compiled
     """Each output direction walks the point pyramid from its coarsest level (a Barnes-Hut
@@ -235,7 +242,7 @@ def _prefilter_kernel(out_dirs: np.ndarray, alpha: float, inv_norm: float, near_
             if lv + 1 < nlev:
                 rho = 1.4142135623730951 * math.pi / h  # the cell's angular radius (bound)
                 ang = math.acos(min(1.0, max(-1.0, c)))
-                if ang < near_angle + 1.5 * rho or rho > 0.5 * ang or (horizon and abs(c) < math.sin(rho)):
+                if ang < near_angle + margin * rho or rho > 0.5 * ang or (rho > horizon_rho and abs(c) < math.sin(rho)):
                     for dr in range(2):
                         for dc in range(2):
                             stack_l[top], stack_r[top], stack_c[top] = lv + 1, 2 * rr + dr, 2 * cc + dc
@@ -368,7 +375,8 @@ class CubemapFilter:
                 fine_h, near, horizon = self._plan(m)
                 n = int(np.searchsorted(heights, min(fine_h, int(heights[-1])))) + 1
                 mean, mom, pw, lum = flat[2:]
-                _prefilter_kernel(dirs, self._alpha[m], 1.0 / self._norm[m], near, horizon,
+                horizon_rho = math.sqrt(2.0) * math.pi / HORIZON_HEIGHT if horizon else math.pi
+                _prefilter_kernel(dirs, self._alpha[m], 1.0 / self._norm[m], near, MARGIN, horizon_rho,
                                   heights[:n], offsets[:n], mean, mom, pw, lum, out)
                 mips.append(out.reshape(self._dirs[m].shape).astype(np.float32))
         return Cubemap(mips, list(self.roughness))

@@ -34,9 +34,10 @@ from typing import Any
 
 import numpy as np
 
+from device.core.environment import Environment
+from device.core.sh import ZONAL_IRRADIANCE
+
 from .cubemap import FACES, Cubemap
-from .environment import Environment
-from .sh import ZONAL_IRRADIANCE
 
 __all__ = ["gltf_environment", "rgbd_encode", "usd_environment"]
 

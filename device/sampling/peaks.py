@@ -28,9 +28,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import ndimage, sparse
-from scipy.sparse.csgraph import connected_components
 
+from device.core.components import DEFAULT_CONTRAST, DEFAULT_RELATIVE, peak_threshold
+from device.core.components import sphere_labels as _sphere_labels
 from device.core.errors import InputError
 from device.core.lightset import LightSet
 from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
@@ -39,8 +39,6 @@ from .base import sanitize_radiance
 
 __all__ = ["Peak", "choose_light_count", "coarse_equirect", "find_peaks", "peak_threshold"]
 
-DEFAULT_RELATIVE = 0.02
-DEFAULT_CONTRAST = 20.0
 
 
 @dataclass(frozen=True)
@@ -62,42 +60,6 @@ class Peak:
                 "rgb": [float(x) for x in self.rgb], "solid_angle": float(self.solid_angle),
                 "pixel_count": int(self.pixel_count), "max_luminance": float(self.max_luminance),
                 "energy_fraction": float(self.energy_fraction)}
-
-
-def peak_threshold(lum: np.ndarray, omega_row: np.ndarray, relative: float = DEFAULT_RELATIVE,
-                   contrast: float = DEFAULT_CONTRAST) -> float:
-    """Automatic luminance threshold ``max(relative * max, contrast * mean)``.
-
-    ``mean`` is the solid-angle-weighted mean luminance (integral / 4 pi): a peak must stand
-    ``contrast`` times above the average sky and within ``1/relative`` of the brightest pixel.
-    """
-    mean = float((lum.astype(np.float64).sum(axis=1) * omega_row).sum() / (4 * np.pi))
-    return max(relative * float(lum.max(initial=0.0)), contrast * mean)
-
-
-def _sphere_labels(mask: np.ndarray) -> tuple[np.ndarray, int]:
-    """Connected components of ``mask`` (H, W) on the sphere: 8-connected, wrapping in phi,
-    all pixels of row 0 (row H-1) joined through the pole. Labels 1..n, 0 = background."""
-    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
-    if n == 0:
-        return labels, 0
-    # Join labels across the phi seam (same row and diagonal neighbours) and through the poles
-    left, right = labels[:, 0], labels[:, -1]
-    pairs = [np.stack([left, right], 1), np.stack([left[1:], right[:-1]], 1),
-             np.stack([left[:-1], right[1:]], 1)]
-    for row in (labels[0], labels[-1]):
-        present = np.unique(row[row > 0])
-        if len(present) > 1:
-            pairs.append(np.stack([present[:-1], present[1:]], 1))
-    p = np.concatenate(pairs)
-    p = p[(p[:, 0] > 0) & (p[:, 1] > 0)]
-    graph = sparse.coo_matrix((np.ones(len(p)), (p[:, 0], p[:, 1])), shape=(n + 1, n + 1))
-    _, comp = connected_components(graph, directed=False)
-    # Relabel so that 0 stays background and components are numbered 1..m
-    roots = comp[1:]
-    uniq, relabel = np.unique(roots, return_inverse=True)
-    lut = np.concatenate([[0], relabel + 1])
-    return lut[labels], len(uniq)
 
 
 def find_peaks(equirect: np.ndarray, *, threshold: float | None = None,

@@ -144,10 +144,10 @@ class Runner:
         self.result: Any = None  # the last FrameResult
         self.lights: LightSet | None = None
         self.lights_text: str | None = None  # self.lights as JSON (serialised once, off the loop)
-        from device.formats.environment import EnvironmentEstimator
+        from device.core.environment import EnvironmentEstimator
 
         self.estimator = EnvironmentEstimator()  # SH + primary light, incremental, every frame
-        self.environment: Any = None  # the last frame's device.formats.environment.Environment
+        self.environment: Any = None  # the last frame's device.core.environment.Environment
         self.stale = True
         self.last_progress: float | None = None
         self.last_activity: float | None = None  # a frame or a reconnect attempt (watchdog)

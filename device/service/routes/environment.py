@@ -1,7 +1,7 @@
 """Host formats of the live lighting (``device.formats``), under ``/api/v1``:
 
 - ``GET sh?convention=canonical|threejs|webxr|filament|unity``: order-2 SH (all light and
-  ambient) plus the primary light, JSON (``device.formats.environment``), every frame;
+  ambient) plus the primary light, JSON (``device.core.environment``), every frame;
 - ``GET cubemap.ktx2?size=N&levels=M``: the GGX-prefiltered cube map (RGBA16F KTX2), and
   ``GET cubemap/{px,nx,py,ny,pz,nz}.exr?mip=m`` its faces as float32 EXR;
 - ``GET environment.gltf`` (+ ``environment/*.png``) and ``GET environment.usda`` (+ the latlong
@@ -27,7 +27,7 @@ import numpy as np
 from aiohttp import web
 
 from device.core.errors import InputError
-from device.formats.sh import CONVENTIONS
+from device.core.sh import CONVENTIONS
 from device.service.errors import ApiError
 from device.service.state import STATE, ServiceState
 
@@ -35,7 +35,7 @@ __all__ = ["add_routes"]
 
 API = "/api/v1"
 FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
-MAX_SIZE = 256
+MAX_SIZE = 128
 _CACHE_ENTRIES = 8
 
 
@@ -103,10 +103,12 @@ CACHE: web.AppKey[_LightingCache] = web.AppKey("lighting_cache", _LightingCache)
 
 
 def _cube_params(request: web.Request) -> tuple[int, int]:
+    """``size`` (a power of two) and ``levels`` (default down to 4 x 4; more than the chain holds
+    gives the whole chain)."""
     size = _int(request, "size", 1, MAX_SIZE, 64, power_of_two=True)
     max_levels = size.bit_length()
     default_levels = max(1, min(max_levels, size.bit_length() - 2)) if size >= 4 else max_levels
-    return size, _int(request, "levels", 1, max_levels, default_levels)
+    return size, min(_int(request, "levels", 1, 16, default_levels), max_levels)
 
 
 async def _map_digest(st: ServiceState, r: Any) -> str:
@@ -133,7 +135,7 @@ async def sh(request: web.Request) -> web.Response:
 
 
 async def cubemap_ktx2(request: web.Request) -> web.Response:
-    from device.formats.ktx2 import ktx2_cubemap_bytes
+    from device.core.ktx2 import ktx2_cubemap_bytes
 
     st = request.app[STATE]
     _check_query(request, {"size", "levels"})
@@ -164,7 +166,9 @@ async def cubemap_face(request: web.Request) -> web.Response:
     if face not in FACE_NAMES:
         raise ApiError(404, f"no face {face[:8]!r}: faces are {', '.join(FACE_NAMES)}", param="face")
     size, levels = _cube_params(request)
-    mip = _int(request, "mip", 0, levels - 1, 0)
+    mip = _int(request, "mip", 0, 15, 0)
+    if mip >= levels:
+        raise ApiError(404, f"no mip {mip}: this chain has {levels} (0 .. {levels - 1})", param="mip")
     r, env = _latest(st)
     cache = request.app[CACHE]
     digest = await _map_digest(st, r)
@@ -179,8 +183,8 @@ async def cubemap_face(request: web.Request) -> web.Response:
 
 async def _scene(request: web.Request) -> tuple[dict[str, Any], dict[str, bytes], str]:
     """The glTF document and images, and the USD text, of the latest lighting (cached)."""
+    from device.core.primary import ambient_map
     from device.formats.cubemap import CubemapFilter
-    from device.formats.primary import ambient_map
     from device.formats.scene import gltf_environment, usd_environment
 
     st = request.app[STATE]

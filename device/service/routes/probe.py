@@ -327,7 +327,7 @@ def _bound_send_buffer(request: web.Request) -> None:
 async def _drain_incoming(ws: web.WebSocketResponse, subs: dict[str, Any]) -> None:
     """Process control frames and subscription messages (see :func:`stream`); an invalid
     subscription gets one error message back and changes nothing."""
-    from device.formats.sh import CONVENTIONS
+    from device.core.sh import CONVENTIONS
 
     async for msg in ws:
         if msg.type == WSMsgType.ERROR:

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from .primary import PrimaryLight, extract_primary
-from .sh import SHProjector, direction_to_convention, to_convention
+from device.core.primary import PrimaryLight, extract_primary
+from device.core.sh import SHProjector, direction_to_convention, to_convention
 
 __all__ = ["SH_VERSION", "Environment", "EnvironmentEstimator"]
 

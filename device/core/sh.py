@@ -76,6 +76,7 @@ _PRECONVOLVED = ZONAL_IRRADIANCE / math.pi * BASIS_CONSTANTS
 _Z_ODD = np.array([1, 1, -1, 1, 1, -1, 1, -1, 1], np.float64)  # z -> -z (Unity's left hand)
 
 CONVENTIONS = ("canonical", "threejs", "webxr", "filament", "unity")
+SPARSE_LIMIT = 0.02  # share of changed pixels up to which the update goes pixel by pixel
 
 
 def sh_basis(d: np.ndarray) -> np.ndarray:
@@ -96,12 +97,47 @@ def _weights(height: int, rows: int) -> np.ndarray:
     return np.ascontiguousarray(w.reshape(-1, 9).T)
 
 
+class _Separable:
+    """The projection as two small products: every basis function is a sum of (function of the
+    row) x (function of the column) terms, with column functions ``1, sin p, cos p, cos^2 p,
+    sin p cos p, sin^2 p``. ``project(rows x cols x 3)`` = per-row column sums (one BLAS product,
+    float64), then a (9 x 6 x rows) contraction: O(pixels x 6) instead of O(pixels x 9)."""
+
+    def __init__(self, height: int, rows: int) -> None:
+        w = 2 * height
+        p = 2 * np.pi * (np.arange(w) + 0.5) / w
+        sp, cp = np.sin(p), np.cos(p)
+        self.cols = np.ascontiguousarray(np.stack([np.ones(w), sp, cp, cp * cp, sp * cp, sp * sp], 1))  # (W, 6)
+        t = np.pi * (np.arange(rows) + 0.5) / height
+        st, ct = np.sin(t), np.cos(t)
+        om = equirect_row_solid_angle(height)[:rows]
+        r = np.zeros((9, 6, rows))
+        r[0, 0] = K0
+        r[1, 0] = K1 * ct  # y
+        r[2, 2] = -K1 * st  # z = -st cp
+        r[3, 1] = K1 * st  # x = st sp
+        r[4, 1] = K2 * st * ct  # xy
+        r[5, 2] = -K2 * ct * st  # yz
+        r[6, 3] = 3.0 * K3 * st * st  # 3 z^2 - 1
+        r[6, 0] = -K3
+        r[7, 4] = -K2 * st * st  # xz
+        r[8, 5] = K4 * st * st  # x^2 - y^2
+        r[8, 0] = -K4 * ct * ct
+        self.rows = np.ascontiguousarray(r * om[None, None, :])  # (9, 6, rows)
+
+    def project(self, img: np.ndarray) -> np.ndarray:
+        """(rows, W, 3) float -> (9, 3) float64."""
+        a = np.asarray(img, np.float64)
+        s = np.einsum("rwc,wk->krc", a, self.cols, optimize=True)  # (6, rows, 3)
+        return np.einsum("ikr,krc->ic", self.rows, s, optimize=True)
+
+
 def project(equirect: np.ndarray) -> np.ndarray:
     """Canonical radiance coefficients (9, 3) float64 of an (H, 2H, 3) map (NaN/inf and
     negative values count as 0, like every sampler's input)."""
     a = _check(equirect)
-    clean = np.where(np.isfinite(a) & (a > 0), a, 0).astype(np.float64)
-    return _weights(a.shape[0], a.shape[0]) @ clean.reshape(-1, 3)
+    clean = np.where(np.isfinite(a) & (a > 0), a, 0)
+    return _Separable(a.shape[0], a.shape[0]).project(clean)
 
 
 def irradiance(coefficients: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -155,7 +191,8 @@ class SHProjector:
         if not 1 <= self.rows <= self.height:
             raise InputError(f"rows must be in [1, {self.height}], got {rows}", param="rows")
         self.refresh = int(refresh)
-        self._w = _weights(self.height, self.rows)  # (9, P)
+        self._sep = _Separable(self.height, self.rows)
+        self._w: np.ndarray | None = None  # (9, P) per-pixel weights, built on the first sparse update
         self._prev: np.ndarray | None = None  # (P, 3) float32, cleaned
         self.coefficients = np.zeros((9, 3))
         self.last_changed = 0
@@ -163,29 +200,42 @@ class SHProjector:
 
     @property
     def nbytes(self) -> int:
-        return int(self._w.nbytes + (self._prev.nbytes if self._prev is not None else 0))
+        w = self._w.nbytes if self._w is not None else 0
+        return int(w + self._sep.rows.nbytes + (self._prev.nbytes if self._prev is not None else 0))
 
     def update(self, equirect: np.ndarray) -> np.ndarray:
         a = _check(equirect)
         if a.shape[0] != self.height:
             raise InputError(f"map height {a.shape[0]} != projector height {self.height}", param="equirect")
-        cur = np.asarray(a[: self.rows], np.float32).reshape(-1, 3)
-        bad = ~(np.isfinite(cur) & (cur >= 0))
-        if bad.any():
-            cur = np.where(bad, np.float32(0), cur)
+        img = np.asarray(a[: self.rows], np.float32)
+        if not np.isfinite(img.min(initial=0.0) + img.max(initial=0.0)) or img.min(initial=0.0) < 0:
+            img = np.where(np.isfinite(img) & (img >= 0), img, np.float32(0))
+        cur = img.reshape(-1, 3)
         prev = self._prev
         self._since_full += 1
         if prev is None or self._since_full >= self.refresh:
-            self.coefficients = self._w @ cur.astype(np.float64)
-            self.last_changed, self._since_full = cur.shape[0], 0
+            self._full(img)
         else:
-            changed = np.flatnonzero((cur != prev).any(axis=1))
-            self.last_changed = int(changed.size)
-            if changed.size > cur.shape[0] // 3:  # a dense update costs more than a re-sum
-                self.coefficients = self._w @ cur.astype(np.float64)
-                self._since_full = 0
-            elif changed.size:
+            ne = cur.ravel() != prev.ravel()
+            n_values = int(np.count_nonzero(ne))
+            if n_values > 3 * SPARSE_LIMIT * cur.shape[0]:  # a dense update costs more than a re-sum
+                self._full(img)
+                self.last_changed = min(n_values, cur.shape[0])
+            elif n_values:
+                changed = np.unique(np.flatnonzero(ne) // 3)
+                self.last_changed = int(changed.size)
+                if self._w is None:
+                    self._w = _weights(self.height, self.rows)
                 delta = cur[changed].astype(np.float64) - prev[changed]
                 self.coefficients = self.coefficients + self._w[:, changed] @ delta
-        self._prev = np.array(cur, copy=True)
+            else:
+                self.last_changed = 0
+        if prev is None or prev.shape != cur.shape:
+            self._prev = np.array(cur, copy=True)
+        else:
+            np.copyto(prev, cur)
         return self.coefficients
+
+    def _full(self, img: np.ndarray) -> None:
+        self.coefficients = self._sep.project(img)
+        self.last_changed, self._since_full = img.shape[0] * img.shape[1], 0

@@ -7,8 +7,8 @@ wherever a sun or a strong lamp is in view. A point light can: ``E(n) = rgb max(
 exact for a source of small solid angle. So the host gets ``ambient SH + one directional light``.
 
 The extraction (choices the hosts' documents leave open):
-1. The peaks of :func:`device.sampling.peaks.find_peaks` on a 64 x 128 energy-preserving reduction
-   of the map (threshold ``max(2% of the brightest, 20 x the mean)``, connected components on
+1. The connected bright regions (:mod:`device.core.components`, as the samplers' peaks) on a
+   64 x 128 energy-preserving reduction of the map (threshold ``max(2% of the brightest, 20 x the mean)``, connected components on
    the sphere); the primary is the peak with the most energy. On the reduction, so a 256-row map
    costs well under a millisecond and the choice does not flicker with pixel noise.
 2. At full resolution, inside that peak's coarse blocks, each pixel gives up its *excess* over
@@ -27,15 +27,35 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
-from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
-
-from .sh import sh_basis
+from device.core.sh import sh_basis
+from device.core.sphere import (
+    LUM_B,
+    LUM_G,
+    LUM_R,
+    directions_from_angles,
+    equirect_row_solid_angle,
+    luminance,
+)
 
 __all__ = ["PrimaryLight", "ambient_map", "extract_primary"]
 
 COARSE_HEIGHT = 64
+
+
+@numba.njit(cache=True, nogil=True)
+def _coarse_luminance(top: np.ndarray, omega: np.ndarray, f: int, c_pow: np.ndarray,
+                      lum: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Per-pixel Rec. 709 luminance (``lum``) and its integral over f x f blocks (``c_pow``)."""
+    for r in range(top.shape[0]):
+        om = omega[r]
+        i = r // f
+        for c in range(top.shape[1]):
+            y = LUM_R * top[r, c, 0] + LUM_G * top[r, c, 1] + LUM_B * top[r, c, 2]
+            lum[r, c] = y
+            c_pow[i, c // f] += y * om
 
 
 @dataclass(frozen=True)
@@ -64,26 +84,24 @@ def extract_primary(equirect: np.ndarray, *, rows: int | None = None,
     ``rows``: only the first rows hold light (the probe's upper hemisphere); ``min_energy_fraction``:
     a peak carrying less of the map's luminance is not worth a light of its own.
     """
-    from device.sampling.peaks import _sphere_labels, peak_threshold
+    from device.core.components import peak_threshold
+    from device.core.components import sphere_labels as _sphere_labels
 
     a = np.asarray(equirect)
     h, w = a.shape[:2]
     rows = h if rows is None else int(rows)
-    top = np.asarray(a[:rows], np.float32)
-    lum_full = luminance(top)
-    bad = ~(np.isfinite(lum_full) & (lum_full > 0))
-    if bad.any():  # NaN / inf / negative pixels count as black, like every sampler's input
-        top = np.where(bad[..., None] | ~np.isfinite(top) | (top < 0), np.float32(0), top)
-        lum_full = luminance(top)
+    top = np.ascontiguousarray(a[:rows], np.float32)
+    mn, mx = float(top.min(initial=0.0)), float(top.max(initial=0.0))
+    if not (np.isfinite(mn) and np.isfinite(mx) and mn >= 0):  # NaN / inf / negative count as black
+        top = np.where(np.isfinite(top) & (top > 0), top, np.float32(0))
     ch = COARSE_HEIGHT if h > COARSE_HEIGHT and h % COARSE_HEIGHT == 0 else h
     f = h // ch
     crow = -(-rows // f)  # coarse rows that hold light
     omega = equirect_row_solid_angle(h, w)
-    pad = np.zeros((crow * f, w), np.float64)
-    pad[:rows] = lum_full * omega[:rows, None]
     c_omega = equirect_row_solid_angle(ch)
     c_pow = np.zeros((ch, 2 * ch))
-    c_pow[:crow] = pad.reshape(crow, f, 2 * ch, f).sum(axis=(1, 3))
+    lum_full = np.empty((rows, w), np.float32)
+    _coarse_luminance(top, omega, f, c_pow, lum_full)
     c_lum = c_pow / c_omega[:, None]  # energy-preserving block means of the luminance
     total = float(c_pow.sum())
     if not total > 0:
