@@ -45,17 +45,21 @@ __all__ = ["PrimaryLight", "ambient_map", "extract_primary"]
 COARSE_HEIGHT = 64
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def _coarse_luminance(top: np.ndarray, omega: np.ndarray, f: int, c_pow: np.ndarray,
                       lum: np.ndarray) -> None:  # pragma: no cover - compiled
     """Per-pixel Rec. 709 luminance (``lum``) and its integral over f x f blocks (``c_pow``)."""
+    nb = top.shape[1] // f
     for r in range(top.shape[0]):
         om = omega[r]
         i = r // f
-        for c in range(top.shape[1]):
-            y = LUM_R * top[r, c, 0] + LUM_G * top[r, c, 1] + LUM_B * top[r, c, 2]
-            lum[r, c] = y
-            c_pow[i, c // f] += y * om
+        for b in range(nb):
+            acc = 0.0
+            for c in range(b * f, b * f + f):
+                y = LUM_R * top[r, c, 0] + LUM_G * top[r, c, 1] + LUM_B * top[r, c, 2]
+                lum[r, c] = y
+                acc += y
+            c_pow[i, b] += acc * om
 
 
 @dataclass(frozen=True)

@@ -157,6 +157,7 @@ class Runner:
         self._rebuild = False
         self._task: asyncio.Task[None] | None = None
         self.cache: dict[str, tuple[int, bytes]] = {}  # per-frame encoded images (api.py)
+        self.cache_locks: dict[str, asyncio.Lock] = {}  # one computation per key and frame
 
     # ---- lifecycle --------------------------------------------------------------------------
     def start(self) -> None:

@@ -134,6 +134,50 @@ async def sh(request: web.Request) -> web.Response:
     return web.json_response(body)
 
 
+def sg_body(st: ServiceState) -> bytes | None:
+    """The latest frame's SG lobes as JSON bytes (blocking: run in a thread), or ``None``."""
+    from device.sampling.sgfit import fit_sg
+
+    r = st.runner.result
+    if r is None:
+        return None
+    sg = fit_sg(np.asarray(r.equirect), probe=st.probe_id, frame=int(r.frame), timestamp=float(r.timestamp),
+                unit=str(getattr(r, "unit", "relative")))
+    body = sg.to_json()
+    body["stale"] = st.runner.stale
+    return json.dumps(body, separators=(",", ":")).encode()
+
+
+async def sg_payload(st: ServiceState) -> bytes | None:
+    """:func:`sg_body`, fitted once per frame (shared by ``GET /sg`` and the stream)."""
+    r = st.runner.result
+    if r is None:
+        return None
+    frame = int(r.frame)
+    hit = st.runner.cache.get("sg")
+    if hit is not None and hit[0] == frame:
+        return hit[1]
+    lock = st.runner.cache_locks.setdefault("sg", asyncio.Lock())
+    async with lock:  # one fit per frame however many clients ask
+        hit = st.runner.cache.get("sg")
+        if hit is not None and hit[0] == frame:
+            return hit[1]
+        data = await asyncio.to_thread(sg_body, st)
+        if data is not None:
+            st.runner.cache["sg"] = (frame, data)
+        return data
+
+
+async def sg(request: web.Request) -> web.Response:
+    st = request.app[STATE]
+    _check_query(request, set())
+    _latest(st)
+    data = await sg_payload(st)
+    if data is None:
+        raise ApiError(503, "no frame yet", param="camera", headers={"Retry-After": "1"})
+    return web.Response(body=data, content_type="application/json")
+
+
 async def cubemap_ktx2(request: web.Request) -> web.Response:
     from device.core.ktx2 import ktx2_cubemap_bytes
 
@@ -269,6 +313,7 @@ def add_routes(app: web.Application, static_dir: Path) -> None:
     app[CACHE] = _LightingCache()
     r = app.router
     r.add_get(f"{API}/sh", sh)
+    r.add_get(f"{API}/sg", sg)
     r.add_get(f"{API}/cubemap.ktx2", cubemap_ktx2)
     r.add_get(f"{API}/cubemap/{{face}}.exr", cubemap_face)
     r.add_get(f"{API}/environment.gltf", environment_gltf)

@@ -262,7 +262,8 @@ async def stream(request: web.Request) -> web.StreamResponse:
     A client that sends ``{"subscribe": ["sh"], "convention": "threejs"}`` (any convention of
     ``GET /api/v1/sh``) also gets, right after each light set, that frame's SH body (the same
     JSON as ``GET /api/v1/sh``, with ``"kind": "sh"``), so light sets and SH stay in step;
-    ``{"subscribe": []}`` stops it. Other text is ignored."""
+    ``"sg"`` in the list adds the frame's SG lobes (``GET /api/v1/sg``, ``"kind": "sg"``), fitted
+    only while someone asks; ``{"subscribe": []}`` stops it. Other text is ignored."""
     st = request.app[STATE]
     _check_query(request, set())
     ws = web.WebSocketResponse(heartbeat=15.0, max_msg_size=4096, compress=False)
@@ -286,13 +287,22 @@ async def stream(request: web.Request) -> web.StreamResponse:
             if seen and version > seen + 1:
                 st.ws_frames_skipped += version - seen - 1
             seen = version
+            extras: list[bytes] = []  # subscriptions, computed before the send clock starts
+            if subs.get("sh"):
+                extra = await _sh_payload(st, subs["sh"])
+                if extra is not None:
+                    extras.append(extra)
+            if subs.get("sg"):
+                from device.service.routes.environment import sg_payload
+
+                extra = await sg_payload(st)
+                if extra is not None:
+                    extras.append(extra)
             try:  # the frame's bytes, encoded once for every client, sent as a text message
                 async with asyncio.timeout(float(st.config.get("service", "ws_send_timeout"))):
                     await ws.send_frame(payload, WSMsgType.TEXT)
-                    if subs.get("sh"):
-                        extra = await _sh_payload(st, subs["sh"])
-                        if extra is not None:
-                            await ws.send_frame(extra, WSMsgType.TEXT)
+                    for extra in extras:
+                        await ws.send_frame(extra, WSMsgType.TEXT)
             except (TimeoutError, ConnectionResetError):
                 st.ws_dropped += 1
                 log.info("websocket client %s too slow: dropped", request.remote)
@@ -341,15 +351,19 @@ async def _drain_incoming(ws: web.WebSocketResponse, subs: dict[str, Any]) -> No
         if not isinstance(req, dict) or "subscribe" not in req:
             continue
         topics, conv = req.get("subscribe"), req.get("convention", "canonical")
-        if not isinstance(topics, list) or not set(map(str, topics)) <= {"sh"} or conv not in CONVENTIONS:
+        if not isinstance(topics, list) or not set(map(str, topics)) <= {"sh", "sg"} or conv not in CONVENTIONS:
             with contextlib.suppress(Exception):
-                await ws.send_str(json.dumps({"error": "subscribe takes a list of topics from ['sh'] and a "
+                await ws.send_str(json.dumps({"error": "subscribe takes a list of topics from ['sh', 'sg'] and a "
                                               f"convention from {list(CONVENTIONS)}", "param": "subscribe"}))
             continue
         if "sh" in topics:
             subs["sh"] = conv
         else:
             subs.pop("sh", None)
+        if "sg" in topics:
+            subs["sg"] = True
+        else:
+            subs.pop("sg", None)
 
 
 async def _sh_payload(st: ServiceState, conv: str) -> bytes | None:

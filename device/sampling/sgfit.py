@@ -1,0 +1,284 @@
+"""The probe's lighting as spherical Gaussians (Michiels, Put, Bekaert 2015, Section 5-6): SG lobes
+fitted to the peaks, plus a multiscale residual transform on HEALPix for the rest.
+
+The paper fixes the structure and leaves the numbers open (``../shared/NOTES.md``). The choices:
+
+1. **Peaks** (paper Section 6: threshold + connected components). The bright regions of
+   :mod:`device.core.components` on a 64 x 128 energy-preserving reduction (threshold
+   ``max(2% of the brightest, 20 x the mean)``), at most ``max_peaks`` by energy, each carrying at
+   least ``min_peak_fraction`` of the light. At full resolution every pixel of the region, grown by
+   one coarse pixel, gives up its *excess* over the local background (the per-channel median of a
+   ring two coarse pixels wide around it): a lamp's light goes to its lobe, the wall behind it
+   stays in the residual, continuous with its surroundings (the levels see no hole). A region becomes 1 SG, or 2-3 when it is
+   elongated (the ratio of its principal spreads above 2 / 4: split along the major axis into
+   equal-energy parts): the paper's "1-3 SGs per component".
+2. **A peak lobe**: axis = the luminance-weighted mean direction ``m`` of its excess, normalised;
+   sharpness from the mean resultant length ``|m|`` (``coth l - 1/l = |m|``: a lobe with the same
+   spread); amplitude from its energy, ``mu = E / (2 pi (1 - exp(-2 l)) / l)`` per channel, so the
+   lobe's integral is exactly the light it took.
+3. **Residual levels** (after Ferrari 2004, as the paper cites): HEALPix ``nside`` 1, 2, 4, 8, 16 (by
+   default), one lobe per pixel centre, sharpness ``ln 2 / (1 - cos theta_l)`` (half maximum at the
+   pixel spacing ``theta_l``). Amplitudes by quasi-interpolation: each lobe carries its pixel's
+   residual energy (``mu_k = E_k / integral G``), so a level's lobes hold exactly the residual's
+   energy; the level's reconstruction is then scaled by the step ``s in [0, 1]`` that minimises the
+   solid-angle-weighted L2 norm of what is left (so the residual never grows: ``s = 0`` leaves it
+   unchanged) and subtracted; the next level fits what remains. Stop when the remaining
+   ``|residual|`` holds less than ``residual_threshold`` of the light, or after the last level.
+   Residual amplitudes may be negative (a correction of the coarser level); their sum with the
+   coarser lobes is the radiance.
+4. The residual is computed on a 128 x 256 working map (energy-preserving reduction); lobes are
+   evaluated there through sparse matrices truncated where a lobe falls below 1e-4 of its peak,
+   built once per level set.
+
+Energy: the peaks' lobes plus the levels' hold the map's integral up to what the last level
+leaves (asserted within 1% on the six shared maps).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+
+from device.core.sg import SGLighting, level_sharpness, lobe_integral, sharpness_from_resultant
+from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
+
+__all__ = ["DEFAULT_LEVELS", "fit_sg"]
+
+DEFAULT_LEVELS = (1, 2, 4, 8, 16)
+WORK_HEIGHT = 128
+MAX_SHARPNESS = 1e6
+PEAK_RELATIVE = 0.002  # a peak pixel exceeds 0.2% of the brightest ...
+PEAK_CONTRAST = 20.0  # ... and 20 x the mean
+_TRUNCATE = 1e-4
+
+
+def _clean(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a, np.float32)
+    mn, mx = float(a.min(initial=0.0)), float(a.max(initial=0.0))
+    if not (np.isfinite(mn) and np.isfinite(mx) and mn >= 0):
+        a = np.where(np.isfinite(a) & (a > 0), a, np.float32(0))
+    return a
+
+
+def _reduce(m: np.ndarray, height: int) -> np.ndarray:
+    """Energy-preserving block means (height, 2 height, 3), float64."""
+    h, w = m.shape[:2]
+    if h == height:
+        return m.astype(np.float64)
+    f = h // height
+    om = equirect_row_solid_angle(h, w)
+    p = (m * om[:, None, None].astype(np.float32)).reshape(height, f, 2 * height, f, 3).sum(axis=(1, 3), dtype=np.float64)
+    return p / equirect_row_solid_angle(height)[:, None, None]
+
+
+@lru_cache(maxsize=8)
+def _level_matrices(height: int, levels: tuple[int, ...]) -> tuple[Any, ...]:
+    """Per level: (pixel -> cell index (P,), cell centres (n, 3), sharpness, sparse (P, n) float64
+    matrix of the unit-amplitude lobes at the working pixels)."""
+    from scipy import sparse
+
+    from device.core.healpix import npix, pix2vec_nest, vec2pix_nest
+
+    d = directions_from_angles(np.pi * (np.arange(height) + 0.5)[:, None] / height,
+                               2 * np.pi * (np.arange(2 * height) + 0.5)[None, :] / (2 * height)).reshape(-1, 3)
+    out = []
+    for nside in levels:
+        cells = vec2pix_nest(nside, d)
+        centres = pix2vec_nest(nside, np.arange(npix(nside)))
+        lam = level_sharpness(nside)
+        cut = 1.0 + math.log(_TRUNCATE) / lam  # exp(lam (c - 1)) >= 1e-4
+        rows, cols, vals = [], [], []
+        for s in range(0, len(d), 2048):
+            c = d[s:s + 2048] @ centres.T
+            i, j = np.nonzero(c >= cut)
+            rows.append(i + s)
+            cols.append(j)
+            vals.append(np.exp(lam * (c[i, j] - 1.0)))
+        mat = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                shape=(len(d), len(centres)))
+        out.append((cells, centres, lam, mat))
+    return tuple(out)
+
+
+def _pixels(mask: np.ndarray, f: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution (row, col) of the f x f blocks of a coarse mask, rows below ``rows``."""
+    br, bc = np.nonzero(mask)
+    r_idx = (br[:, None, None] * f + np.arange(f)[None, :, None] + np.zeros(f, np.int64)[None, None, :]).reshape(-1)
+    c_idx = (bc[:, None, None] * f + np.zeros(f, np.int64)[None, :, None] + np.arange(f)[None, None, :]).reshape(-1)
+    keep = r_idx < rows
+    return r_idx[keep], c_idx[keep]
+
+
+def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, relative: float, contrast: float
+           ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], float]:
+    """The peaks' excess pixels: a list of (directions (k, 3), power (k, 3), luminance power (k,))
+    per peak (brightest first), after taking the excess out of ``full`` in place; and the map's
+    luminance integral."""
+    from scipy import ndimage
+
+    from device.core.components import peak_threshold, sphere_labels
+
+    h, w = full.shape[:2]
+    ch = WORK_HEIGHT if h > WORK_HEIGHT and h % WORK_HEIGHT == 0 else h
+    f = h // ch
+    omega = equirect_row_solid_angle(h, w)
+    lum = luminance(full[:rows])
+    c_pow = np.zeros((ch, 2 * ch))
+    crow = -(-rows // f)
+    pad = np.zeros((crow * f, w))
+    pad[:rows] = lum * omega[:rows, None]
+    c_pow[:crow] = pad.reshape(crow, f, 2 * ch, f).sum(axis=(1, 3))
+    c_omega = equirect_row_solid_angle(ch)
+    total = float(c_pow.sum())
+    if not total > 0:
+        return [], 0.0
+    c_lum = c_pow / c_omega[:, None]
+    t = peak_threshold(c_lum, c_omega, relative, contrast)
+    labels, n = sphere_labels(c_lum > t)
+    if n == 0:
+        return [], total
+    power = np.bincount(labels.ravel(), c_pow.ravel(), n + 1)[1:]
+    found = []
+    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+    for lab in np.argsort(-power)[:max_peaks] + 1:
+        if power[lab - 1] < min_fraction * total:
+            break
+        comp = labels == lab
+        grown = ndimage.binary_dilation(comp, cross, iterations=1)
+        ring = ndimage.binary_dilation(grown, cross, iterations=2) & ~grown & (labels == 0)
+        r_idx, c_idx = _pixels(grown[:crow], f, rows)
+        rr, rc = _pixels(ring[:crow], f, rows)
+        if len(r_idx) == 0:
+            continue
+        # the local background: the median of a ring around the region (per channel)
+        bg = np.median(full[rr, rc], axis=0) if len(rr) else np.zeros(3, np.float32)
+        px = full[r_idx, c_idx].astype(np.float64)
+        excess = np.maximum(px - bg[None, :], 0.0)
+        keep = luminance(excess) > 0
+        if not keep.any():
+            continue
+        r_idx, c_idx, excess = r_idx[keep], c_idx[keep], excess[keep]
+        full[r_idx, c_idx] = np.maximum(full[r_idx, c_idx] - excess.astype(np.float32), 0.0)
+        om = omega[r_idx]
+        dirs = directions_from_angles(np.pi * (r_idx + 0.5) / h, 2 * np.pi * (c_idx + 0.5) / w)
+        pw = excess * om[:, None]
+        found.append((dirs, pw, luminance(pw)))
+    return found, total
+
+
+def _split(dirs: np.ndarray, pw: np.ndarray, lp: np.ndarray, max_lobes: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """1-3 parts of a peak, each fitted by one lobe. A peak whose light is concentrated far more
+    than one Gaussian of its spread (a sun in its halo: the inner half of the energy within a
+    radius under a third of the outer half's) splits radially into a core and one or two halo
+    shells of equal energy; an elongated one (principal spreads above 2 : 1, above 4 : 1 for
+    three parts) splits along its major axis into parts of equal energy; otherwise one part."""
+    if max_lobes <= 1 or len(dirs) < 8:
+        return [(dirs, pw, lp)]
+    wsum = lp.sum()
+    mean = lp @ dirs / wsum
+    centre = mean / np.linalg.norm(mean)
+    radius = np.arccos(np.clip(dirs @ centre, -1.0, 1.0))
+    order = np.argsort(radius)
+    cum = np.cumsum(lp[order]) / wsum
+    inner = order[cum <= 0.5]
+    outer = order[cum > 0.5]
+    if len(inner) and len(outer):
+        r_in = float(lp[inner] @ radius[inner] / lp[inner].sum())
+        r_out = float(lp[outer] @ radius[outer] / lp[outer].sum())
+        if r_in < r_out / 3.0:
+            parts = min(max_lobes, 3)
+            bins = np.minimum((cum * parts).astype(np.int64), parts - 1)
+            return [(dirs[order[bins == b]], pw[order[bins == b]], lp[order[bins == b]])
+                    for b in range(parts) if np.any(bins == b)]
+    x = dirs - mean
+    cov = (x * lp[:, None]).T @ x / wsum
+    ev, evec = np.linalg.eigh(cov)
+    spread = np.sqrt(np.maximum(ev[::-1], 0.0))  # descending: major, minor, (normal)
+    ratio = spread[0] / max(spread[1], 1e-12)
+    parts = 3 if (ratio > 4.0 and max_lobes >= 3) else 2 if ratio > 2.0 else 1
+    if parts == 1:
+        return [(dirs, pw, lp)]
+    proj = x @ evec[:, -1]
+    order = np.argsort(proj)
+    cum = np.cumsum(lp[order]) / wsum
+    bins = np.minimum((cum * parts).astype(np.int64), parts - 1)
+    out = []
+    for b in range(parts):
+        idx = order[bins == b]
+        if len(idx):
+            out.append((dirs[idx], pw[idx], lp[idx]))
+    return out
+
+
+def _lobe(dirs: np.ndarray, pw: np.ndarray, lp: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Axis, sharpness and amplitude of one peak part (energy kept exactly)."""
+    m = lp @ dirs / lp.sum()
+    r = float(np.linalg.norm(m))
+    lam = min(float(sharpness_from_resultant(np.array(r))), MAX_SHARPNESS)
+    energy = pw.sum(axis=0)
+    return m / r, lam, energy / float(lobe_integral(np.array(lam)))
+
+
+def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, residual_threshold: float = 0.01,
+           max_peaks: int = 8, min_peak_fraction: float = 1e-3, max_peak_lobes: int = 3,
+           peak_relative: float = PEAK_RELATIVE, peak_contrast: float = PEAK_CONTRAST,
+           rows: int | None = None, **meta: Any) -> SGLighting:
+    """SG lobes of an (H, 2H, 3) map (see the module notes). ``rows``: only the first rows hold
+    light (default: the upper half if the lower half is black). ``meta``: probe, frame, timestamp,
+    unit for the result."""
+    from device.core.errors import InputError
+
+    a = np.asarray(equirect)
+    if a.ndim != 3 or a.shape[2] != 3 or a.shape[1] != 2 * a.shape[0] or (a.shape[0] % WORK_HEIGHT and a.shape[0] > WORK_HEIGHT):
+        raise InputError(f"expected an (H, 2H, 3) equirect map with H a multiple of {WORK_HEIGHT}, got shape {a.shape}",
+                         param="equirect")
+    h = a.shape[0]
+    full = np.array(_clean(a), copy=True)
+    if rows is None:
+        rows = h // 2 if not full[h // 2:].any() else h
+    axes, lams, amps, kinds = [], [], [], []
+    peaks, total = _peaks(full, rows, max_peaks, min_peak_fraction, peak_relative, peak_contrast)
+    for dirs, pw, lp in peaks:
+        for part in _split(dirs, pw, lp, max_peak_lobes):
+            ax, lam, mu = _lobe(*part)
+            axes.append(ax)
+            lams.append(lam)
+            amps.append(mu)
+            kinds.append("peak")
+    hw = min(WORK_HEIGHT, h)
+    work = _reduce(full, hw)  # (hw, 2hw, 3) radiance, the peaks' excess removed
+    om = np.repeat(equirect_row_solid_angle(hw), 2 * hw)
+    resid = work.reshape(-1, 3)
+    total_lum = max(total, float(luminance(resid).dot(om)), 1e-300)
+    l2_ref = math.sqrt(max(float(np.sum(om[:, None] * resid * resid)), 1e-300))
+
+    def l2(r: np.ndarray) -> float:
+        return math.sqrt(float(np.sum(om[:, None] * r * r))) / l2_ref
+
+    info = []
+    for nside, (cells, centres, lam, mat) in zip(levels, _level_matrices(hw, tuple(levels)), strict=True):
+        rem = float(np.abs(luminance(resid)).dot(om)) / total_lum
+        if rem < residual_threshold:
+            break
+        cell_e = np.stack([np.bincount(cells, resid[:, c] * om, len(centres)) for c in range(3)], 1)
+        mu = cell_e / float(lobe_integral(np.array(lam)))
+        recon = mat @ mu  # (P, 3) radiance of the level's lobes at the working pixels
+        num = float(np.sum(om[:, None] * resid * recon))
+        den = float(np.sum(om[:, None] * recon * recon))
+        step = min(1.0, max(0.0, num / den)) if den > 0 else 0.0
+        if step <= 0:
+            info.append({"nside": int(nside), "lobes": 0, "sharpness": lam, "step": 0.0, "residual": rem,
+                         "residual_l2": l2(resid)})
+            continue
+        resid = resid - step * recon
+        keep = np.abs(mu).max(axis=1) > 0
+        axes.extend(centres[keep])
+        lams.extend([lam] * int(keep.sum()))
+        amps.extend(step * mu[keep])
+        kinds.extend(["residual"] * int(keep.sum()))
+        info.append({"nside": int(nside), "lobes": int(keep.sum()), "sharpness": lam, "step": step,
+                     "residual": float(np.abs(luminance(resid)).dot(om)) / total_lum, "residual_l2": l2(resid)})
+    return SGLighting(np.array(axes).reshape(-1, 3), np.array(lams), np.array(amps).reshape(-1, 3), kinds, info, **meta)
