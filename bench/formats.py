@@ -138,7 +138,38 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
                 errs.append(float(np.max(np.abs(got - ref) / np.maximum(ref, 0.05 * ref.mean()))))
             cubes.append({"map": name, "hemisphere": hemi, **t, "mip_max_rel_error": errs})
 
-    result = {"irradiance": irr, "sh_primary_per_frame": {"all_pixels_change": dense, "lamp_24_px": lamp,
+    # spherical Gaussians (#17): the fit on every map, sphere and probe hemisphere
+    from device.core.lightset import LightSet
+    from device.core.sg import SGLighting
+    from device.core.sphere import equirect_directions, equirect_integral, equirect_row_solid_angle
+    from device.sampling.metrics import ErrorReference
+    from device.sampling.sgfit import fit_sg
+
+    def sg_lights(sg: SGLighting, h: int = 256) -> LightSet:
+        peak = np.array([k == "peak" for k in sg.kinds], bool)
+        d = equirect_directions(h).reshape(-1, 3)
+        om = np.repeat(equirect_row_solid_angle(h), 2 * h)
+        res = SGLighting(sg.axes[~peak], sg.sharpness[~peak], sg.amplitude[~peak], [k for k in sg.kinds if k != "peak"])
+        return LightSet(np.concatenate([d, sg.axes[peak]]), np.concatenate([res.radiance(d) * om[:, None], sg.energy()[peak]]),
+                        np.concatenate([om, np.zeros(int(peak.sum()))]))
+
+    sgs = []
+    for name, m0 in maps.items():
+        for hemi in (False, True):
+            mm = m0.copy()
+            if hemi:
+                mm[128:] = 0
+            fit_sg(mm)
+            t = _timed(lambda mm=mm: fit_sg(mm), 3 if quick else 10)
+            sg = fit_sg(mm)
+            ref = ErrorReference(mm)
+            ls = sg_lights(sg)
+            sgs.append({"map": name, "hemisphere": hemi, **t, "lobes": len(sg), "peak_lobes": sg.kinds.count("peak"),
+                        "energy_error": float(sg.energy().sum(axis=0) @ REC709 / (equirect_integral(mm) @ REC709) - 1),
+                        "diffuse": ref.error("diffuse", ls), "glossy": ref.error("glossy", ls),
+                        "residual_l2": [lv["residual_l2"] for lv in sg.levels]})
+
+    result = {"irradiance": irr, "sg": sgs, "sh_primary_per_frame": {"all_pixels_change": dense, "lamp_24_px": lamp,
                                                           "unchanged": same},
               "cubemap_64": cubes, "roughness": flt.roughness}
     (out_dir / "formats.json").write_text(json.dumps(result, indent=1))

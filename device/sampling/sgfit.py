@@ -27,7 +27,7 @@ The paper fixes the structure and leaves the numbers open (``../shared/NOTES.md`
    Residual amplitudes may be negative (a correction of the coarser level); their sum with the
    coarser lobes is the radiance.
 4. The residual is computed on a 128 x 256 working map (energy-preserving reduction); lobes are
-   evaluated there through sparse matrices truncated where a lobe falls below 1e-4 of its peak,
+   evaluated there through sparse float32 matrices truncated where a lobe falls below 1e-3 of its peak,
    built once per level set.
 
 Energy: the peaks' lobes plus the levels' hold the map's integral up to what the last level
@@ -40,6 +40,7 @@ import math
 from functools import lru_cache
 from typing import Any
 
+import numba
 import numpy as np
 
 from device.core.sg import SGLighting, level_sharpness, lobe_integral, sharpness_from_resultant
@@ -52,7 +53,7 @@ WORK_HEIGHT = 128
 MAX_SHARPNESS = 1e6
 PEAK_RELATIVE = 0.002  # a peak pixel exceeds 0.2% of the brightest ...
 PEAK_CONTRAST = 20.0  # ... and 20 x the mean
-_TRUNCATE = 1e-4
+_TRUNCATE = 1e-3
 
 
 def _clean(a: np.ndarray) -> np.ndarray:
@@ -63,14 +64,25 @@ def _clean(a: np.ndarray) -> np.ndarray:
     return a
 
 
+@numba.njit(cache=True, nogil=True)
+def _block_power(m: np.ndarray, omega: np.ndarray, f: int, out: np.ndarray) -> None:  # pragma: no cover
+    for r in range(m.shape[0]):
+        om = omega[r]
+        i = r // f
+        for b in range(out.shape[1]):
+            for c in range(b * f, b * f + f):
+                out[i, b, 0] += m[r, c, 0] * om
+                out[i, b, 1] += m[r, c, 1] * om
+                out[i, b, 2] += m[r, c, 2] * om
+
+
 def _reduce(m: np.ndarray, height: int) -> np.ndarray:
     """Energy-preserving block means (height, 2 height, 3), float64."""
     h, w = m.shape[:2]
     if h == height:
         return m.astype(np.float64)
-    f = h // height
-    om = equirect_row_solid_angle(h, w)
-    p = (m * om[:, None, None].astype(np.float32)).reshape(height, f, 2 * height, f, 3).sum(axis=(1, 3), dtype=np.float64)
+    p = np.zeros((height, 2 * height, 3))
+    _block_power(np.ascontiguousarray(m, np.float32), equirect_row_solid_angle(h, w), h // height, p)
     return p / equirect_row_solid_angle(height)[:, None, None]
 
 
@@ -89,7 +101,7 @@ def _level_matrices(height: int, levels: tuple[int, ...]) -> tuple[Any, ...]:
         cells = vec2pix_nest(nside, d)
         centres = pix2vec_nest(nside, np.arange(npix(nside)))
         lam = level_sharpness(nside)
-        cut = 1.0 + math.log(_TRUNCATE) / lam  # exp(lam (c - 1)) >= 1e-4
+        cut = 1.0 + math.log(_TRUNCATE) / lam  # exp(lam (c - 1)) >= _TRUNCATE
         rows, cols, vals = [], [], []
         for s in range(0, len(d), 2048):
             c = d[s:s + 2048] @ centres.T
@@ -97,7 +109,7 @@ def _level_matrices(height: int, levels: tuple[int, ...]) -> tuple[Any, ...]:
             rows.append(i + s)
             cols.append(j)
             vals.append(np.exp(lam * (c[i, j] - 1.0)))
-        mat = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        mat = sparse.csr_matrix((np.concatenate(vals).astype(np.float32), (np.concatenate(rows), np.concatenate(cols))),
                                 shape=(len(d), len(centres)))
         out.append((cells, centres, lam, mat))
     return tuple(out)
@@ -265,7 +277,7 @@ def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, re
             break
         cell_e = np.stack([np.bincount(cells, resid[:, c] * om, len(centres)) for c in range(3)], 1)
         mu = cell_e / float(lobe_integral(np.array(lam)))
-        recon = mat @ mu  # (P, 3) radiance of the level's lobes at the working pixels
+        recon = (mat @ mu.astype(np.float32)).astype(np.float64)  # (P, 3) the level's radiance at the working pixels
         num = float(np.sum(om[:, None] * resid * recon))
         den = float(np.sum(om[:, None] * recon * recon))
         step = min(1.0, max(0.0, num / den)) if den > 0 else 0.0
