@@ -32,6 +32,8 @@ from device.core.lightset import LightSet
 from device.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree
 
 if TYPE_CHECKING:
+    from device.core.sg import SGLighting
+
     from .formats import CubeMap, EnvironmentFiles, SHLighting
 
 __all__ = [
@@ -184,6 +186,16 @@ class ProbeClient:
             return SHLighting.from_json(d)
         except InputError as e:
             raise ProbeProtocolError(f"{self.api}/sh: {e}", self.api + "/sh") from e
+
+    async def sg(self) -> SGLighting:
+        """``GET /sg``: the lighting as spherical Gaussians (peak and residual lobes)."""
+        from device.core.sg import SGLighting
+
+        d = await self._json("/sg")
+        try:
+            return SGLighting.from_json(d)
+        except InputError as e:
+            raise ProbeProtocolError(f"{self.api}/sg: {e}", self.api + "/sg") from e
 
     async def cubemap(self, size: int = 64, levels: int | None = None) -> CubeMap:
         """``GET /cubemap.ktx2`` (needs the token unless ``service.public_images``): the

@@ -160,6 +160,12 @@ async def test_service_serves_sg_and_streams_it_on_request(tmp_path: Path) -> No
         assert lobe["kind"] in ("peak", "residual")
         async with c.get(s.api + "/sg?x=1") as r:
             assert r.status == 400
+        from hostlink.client import ProbeClient
+
+        async with ProbeClient(s.url, timeout=60) as cl:
+            typed = await cl.sg()
+            assert len(typed) > 0
+            assert typed.probe == "probetest0001"
         async with c.ws_connect(s.api + "/stream") as ws:
             await ws.send_str(json.dumps({"subscribe": ["sg"]}))
             kinds = []
