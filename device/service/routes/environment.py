@@ -29,6 +29,7 @@ from aiohttp import web
 from device.core.errors import InputError
 from device.core.sh import CONVENTIONS
 from device.service.errors import ApiError
+from device.service.routes.probe import check_query, static_handler
 from device.service.state import STATE, ServiceState
 
 __all__ = ["add_routes"]
@@ -37,12 +38,6 @@ API = "/api/v1"
 FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
 MAX_SIZE = 128
 _CACHE_ENTRIES = 8
-
-
-def _check_query(request: web.Request, allowed: set[str]) -> None:
-    for k in request.query:
-        if k not in allowed and k not in ("access_token", "t"):
-            raise InputError(f"unknown query parameter {k[:40]!r}", param=k[:40])
 
 
 def _int(request: web.Request, name: str, lo: int, hi: int, default: int, *, power_of_two: bool = False) -> int:
@@ -123,7 +118,7 @@ async def _map_digest(st: ServiceState, r: Any) -> str:
 
 async def sh(request: web.Request) -> web.Response:
     st = request.app[STATE]
-    _check_query(request, {"convention"})
+    check_query(request, {"convention"})
     conv = request.query.get("convention", "canonical")
     if conv not in CONVENTIONS:
         raise InputError(f"convention must be one of {', '.join(CONVENTIONS)}, got {conv[:40]!r}",
@@ -170,7 +165,7 @@ async def sg_payload(st: ServiceState) -> bytes | None:
 
 async def sg(request: web.Request) -> web.Response:
     st = request.app[STATE]
-    _check_query(request, set())
+    check_query(request, set())
     _latest(st)
     data = await sg_payload(st)
     if data is None:
@@ -182,7 +177,7 @@ async def cubemap_ktx2(request: web.Request) -> web.Response:
     from device.core.ktx2 import ktx2_cubemap_bytes
 
     st = request.app[STATE]
-    _check_query(request, {"size", "levels"})
+    check_query(request, {"size", "levels"})
     size, levels = _cube_params(request)
     r, env = _latest(st)
     cache = request.app[CACHE]
@@ -205,7 +200,7 @@ async def cubemap_face(request: web.Request) -> web.Response:
     from device.core.imageio import exr_bytes
 
     st = request.app[STATE]
-    _check_query(request, {"size", "levels", "mip"})
+    check_query(request, {"size", "levels", "mip"})
     face = request.match_info["face"]
     if face not in FACE_NAMES:
         raise ApiError(404, f"no face {face[:8]!r}: faces are {', '.join(FACE_NAMES)}", param="face")
@@ -267,13 +262,13 @@ def _with_token(doc: dict[str, Any], request: web.Request) -> dict[str, Any]:
 
 
 async def environment_gltf(request: web.Request) -> web.Response:
-    _check_query(request, set())
+    check_query(request, set())
     doc, _, _ = await _scene(request)
     return web.Response(body=json.dumps(_with_token(doc, request)).encode(), content_type="model/gltf+json")
 
 
 async def environment_file(request: web.Request) -> web.Response:
-    _check_query(request, set())
+    check_query(request, set())
     name = request.match_info["name"]
     _, files, _ = await _scene(request)
     key = f"environment/{name}"
@@ -283,7 +278,7 @@ async def environment_file(request: web.Request) -> web.Response:
 
 
 async def environment_usda(request: web.Request) -> web.Response:
-    _check_query(request, set())
+    check_query(request, set())
     _, _, text = await _scene(request)
     return web.Response(text=text, content_type="model/vnd.usda",
                         headers={"Content-Disposition": 'inline; filename="environment.usda"'})
@@ -291,20 +286,9 @@ async def environment_usda(request: web.Request) -> web.Response:
 
 def _latlong(name: str) -> Any:
     async def handler(request: web.Request) -> web.Response:
-        _check_query(request, set())
+        check_query(request, set())
         _, files, _ = await _scene(request)
         return web.Response(body=files[name], content_type="image/x-exr")
-
-    return handler
-
-
-def _static(path: Path, content_type: str) -> Any:
-    present = path.is_file()  # a fixed file of the install: checked once, at start
-
-    async def handler(request: web.Request) -> web.StreamResponse:
-        if not present:
-            raise web.HTTPNotFound()
-        return web.FileResponse(path, headers={"Content-Type": content_type})
 
     return handler
 
@@ -321,7 +305,4 @@ def add_routes(app: web.Application, static_dir: Path) -> None:
     r.add_get(f"{API}/environment.usda", environment_usda)
     for name in ("environment_latlong.exr", "environment_ambient_latlong.exr"):
         r.add_get(f"{API}/{name}", _latlong(name))
-    r.add_get("/view", _static(static_dir / "view.html", "text/html"))
-    r.add_get("/static/view.js", _static(static_dir / "view.js", "text/javascript"))
-    r.add_get("/static/vendor/three.module.min.js", _static(static_dir / "vendor" / "three.module.min.js",
-                                                           "text/javascript"))
+    r.add_get("/view", static_handler(static_dir, "view.html"))  # its files: routes.probe.STATIC_FILES

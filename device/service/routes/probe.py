@@ -28,7 +28,9 @@ __all__ = ["add_routes"]
 log = logging.getLogger(__name__)
 
 API = "/api/v1"
-STATIC_FILES = {"index.html": "text/html", "app.js": "text/javascript", "style.css": "text/css"}
+STATIC_FILES = {"index.html": "text/html", "app.js": "text/javascript", "style.css": "text/css",
+                "view.html": "text/html", "view.js": "text/javascript",  # /view (routes.environment)
+                "vendor/three.module.min.js": "text/javascript"}
 
 
 
@@ -66,7 +68,7 @@ def _int_param(request: web.Request, name: str, lo: int, hi: int, default: int) 
     return v
 
 
-def _check_query(request: web.Request, allowed: set[str]) -> None:
+def check_query(request: web.Request, allowed: set[str]) -> None:
     for k in request.query:
         if k not in allowed and k not in ("access_token", "t"):  # t: a client's cache buster
             raise InputError(f"unknown query parameter {k[:40]!r}", param=k[:40])
@@ -103,7 +105,7 @@ async def status(request: web.Request) -> web.Response:
 
 async def lights(request: web.Request) -> web.Response:
     st = request.app[STATE]
-    _check_query(request, {"method", "count"})
+    check_query(request, {"method", "count"})
     method = request.query.get("method")
     if method is not None and method not in SAMPLERS:
         raise InputError(f"method must be one of {', '.join(SAMPLERS)}, got {method[:40]!r}", param="method")
@@ -149,7 +151,7 @@ async def probe_hdr(request: web.Request) -> web.Response:
 
 async def preview(request: web.Request) -> web.Response:
     st = request.app[STATE]
-    _check_query(request, {"view"})
+    check_query(request, {"view"})
     view = request.query.get("view", "fisheye")
     if view not in ("fisheye", "equirect"):
         raise InputError(f"view must be 'fisheye' or 'equirect', got {view[:40]!r}", param="view")
@@ -265,7 +267,7 @@ async def stream(request: web.Request) -> web.StreamResponse:
     ``"sg"`` in the list adds the frame's SG lobes (``GET /api/v1/sg``, ``"kind": "sg"``), fitted
     only while someone asks; ``{"subscribe": []}`` stops it. Other text is ignored."""
     st = request.app[STATE]
-    _check_query(request, set())
+    check_query(request, set())
     ws = web.WebSocketResponse(heartbeat=15.0, max_msg_size=4096, compress=False)
     await ws.prepare(request)
     _bound_send_buffer(request)
@@ -382,7 +384,7 @@ async def _sh_payload(st: ServiceState, conv: str) -> bytes | None:
     return data
 
 
-def _static_handler(static_dir: Path, name: str) -> Any:
+def static_handler(static_dir: Path, name: str) -> Any:
     path = static_dir / name
 
     async def handler(request: web.Request) -> web.StreamResponse:
@@ -415,6 +417,6 @@ def add_routes(app: web.Application, static_dir: Path) -> None:
     r.add_get(f"{API}/config", get_config)
     r.add_put(f"{API}/config", put_config)
     r.add_get(f"{API}/openapi.json", _openapi_handler(static_dir))
-    r.add_get("/", _static_handler(static_dir, "index.html"))
+    r.add_get("/", static_handler(static_dir, "index.html"))
     for name in STATIC_FILES:
-        r.add_get(f"/static/{name}", _static_handler(static_dir, name))
+        r.add_get(f"/static/{name}", static_handler(static_dir, name))
