@@ -38,6 +38,7 @@ API = "/api/v1"
 FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
 MAX_SIZE = 128
 _CACHE_ENTRIES = 8
+_FILTERS = 3
 
 
 def _int(request: web.Request, name: str, lo: int, hi: int, default: int, *, power_of_two: bool = False) -> int:
@@ -72,25 +73,32 @@ class _LightingCache:
     def __init__(self) -> None:
         self.items: dict[tuple[Any, ...], tuple[str, Any]] = {}
         self.filters: dict[tuple[int, int], Any] = {}
+        self.locks: dict[tuple[Any, ...], asyncio.Lock] = {}
         self.builds = 0
 
     async def get(self, key: tuple[Any, ...], digest: str, build: Any) -> Any:
-        hit = self.items.get(key)
-        if hit is not None and hit[0] == digest:
-            return hit[1]
-        value = await asyncio.to_thread(build)
-        self.builds += 1
-        if len(self.items) >= _CACHE_ENTRIES:
-            self.items.pop(next(iter(self.items)))
-        self.items[key] = (digest, value)
-        return value
+        """The value for ``key`` at this lighting; built once however many requests ask at once."""
+        async with self.locks.setdefault(key, asyncio.Lock()):
+            hit = self.items.get(key)
+            if hit is not None and hit[0] == digest:
+                return hit[1]
+            value = await asyncio.to_thread(build)
+            self.builds += 1
+            if len(self.items) >= _CACHE_ENTRIES:
+                self.items.pop(next(iter(self.items)))
+            self.items[key] = (digest, value)
+            return value
 
     def filter(self, size: int, levels: int) -> Any:
+        """A cube-map filter for the size and mip count (its tables kept for the last few asked)."""
         from device.formats.cubemap import CubemapFilter
 
-        f = self.filters.get((size, levels))
+        f = self.filters.pop((size, levels), None)
         if f is None:
-            f = self.filters[(size, levels)] = CubemapFilter(size, levels)
+            f = CubemapFilter(size, levels)
+            while len(self.filters) >= _FILTERS:
+                self.filters.pop(next(iter(self.filters)))
+        self.filters[(size, levels)] = f  # most recently used last
         return f
 
 
@@ -223,20 +231,19 @@ async def cubemap_face(request: web.Request) -> web.Response:
 async def _scene(request: web.Request) -> tuple[dict[str, Any], dict[str, bytes], str]:
     """The glTF document and images, and the USD text, of the latest lighting (cached)."""
     from device.core.primary import ambient_map
-    from device.formats.cubemap import CubemapFilter
     from device.formats.scene import gltf_environment, usd_environment
 
     st = request.app[STATE]
     r, env = _latest(st)
     cache = request.app[CACHE]
     digest = await _map_digest(st, r)
-    size = 64
+    flt = cache.filter(64, 5)  # 64 down to 4, as the cube-map endpoint's default
 
     def build() -> tuple[dict[str, Any], dict[str, bytes], str]:
         from device.core.imageio import exr_bytes
 
         amb = ambient_map(r.equirect, env.primary)
-        cm = CubemapFilter(size).filter(amb)
+        cm = flt.filter(amb)
         doc, files = gltf_environment(env, cm)
         meta = {"unit": str(env.unit), "probe": st.probe_id, "frame": str(int(r.frame)),
                 "layout": "latlong (OpenEXR / UsdLux): the probe frame's equirect"}
