@@ -29,6 +29,7 @@ from aiohttp import web
 from device.core.errors import InputError
 from device.core.sh import CONVENTIONS
 from device.service.errors import ApiError
+from device.service.payloads import sg_payload
 from device.service.routes.probe import check_query, static_handler
 from device.service.state import STATE, ServiceState
 
@@ -135,40 +136,6 @@ async def sh(request: web.Request) -> web.Response:
     body = env.to_json(conv)
     body["stale"] = st.runner.stale
     return web.json_response(body)
-
-
-def sg_body(st: ServiceState) -> bytes | None:
-    """The latest frame's SG lobes as JSON bytes (blocking: run in a thread), or ``None``."""
-    from device.sampling.sgfit import fit_sg
-
-    r = st.runner.result
-    if r is None:
-        return None
-    sg = fit_sg(np.asarray(r.equirect), probe=st.probe_id, frame=int(r.frame), timestamp=float(r.timestamp),
-                unit=str(getattr(r, "unit", "relative")))
-    body = sg.to_json()
-    body["stale"] = st.runner.stale
-    return json.dumps(body, separators=(",", ":")).encode()
-
-
-async def sg_payload(st: ServiceState) -> bytes | None:
-    """:func:`sg_body`, fitted once per frame (shared by ``GET /sg`` and the stream)."""
-    r = st.runner.result
-    if r is None:
-        return None
-    frame = int(r.frame)
-    hit = st.runner.cache.get("sg")
-    if hit is not None and hit[0] == frame:
-        return hit[1]
-    lock = st.runner.cache_locks.setdefault("sg", asyncio.Lock())
-    async with lock:  # one fit per frame however many clients ask
-        hit = st.runner.cache.get("sg")
-        if hit is not None and hit[0] == frame:
-            return hit[1]
-        data = await asyncio.to_thread(sg_body, st)
-        if data is not None:
-            st.runner.cache["sg"] = (frame, data)
-        return data
 
 
 async def sg(request: web.Request) -> web.Response:

@@ -21,6 +21,7 @@ from device.core.errors import InputError
 from device.service.config import SAMPLERS, save_config
 from device.service.encode import encode_hdr, encode_jpeg
 from device.service.errors import ApiError
+from device.service.payloads import sg_payload, sh_payload
 from device.service.state import STATE, ServiceState
 
 __all__ = ["add_routes"]
@@ -291,12 +292,10 @@ async def stream(request: web.Request) -> web.StreamResponse:
             seen = version
             extras: list[bytes] = []  # subscriptions, computed before the send clock starts
             if subs.get("sh"):
-                extra = await _sh_payload(st, subs["sh"])
+                extra = await sh_payload(st, subs["sh"])
                 if extra is not None:
                     extras.append(extra)
             if subs.get("sg"):
-                from device.service.routes.environment import sg_payload
-
                 extra = await sg_payload(st)
                 if extra is not None:
                     extras.append(extra)
@@ -366,22 +365,6 @@ async def _drain_incoming(ws: web.WebSocketResponse, subs: dict[str, Any]) -> No
             subs["sg"] = True
         else:
             subs.pop("sg", None)
-
-
-async def _sh_payload(st: ServiceState, conv: str) -> bytes | None:
-    """The latest frame's SH body in ``conv``, encoded once per frame and convention."""
-    env = st.runner.environment
-    if env is None:
-        return None
-    key = f"sh:{conv}"
-    hit = st.runner.cache.get(key)
-    if hit is not None and hit[0] == int(env.frame):
-        return hit[1]
-    body = env.to_json(conv)
-    body["stale"] = st.runner.stale
-    data = json.dumps(body, separators=(",", ":")).encode()
-    st.runner.cache[key] = (int(env.frame), data)
-    return data
 
 
 def static_handler(static_dir: Path, name: str) -> Any:
