@@ -284,7 +284,8 @@ async def test_hostlink_reads_sh_cubemap_and_environment_and_the_served_gltf_val
             assert [m.shape for m in cube.mips] == [(6, 16, 16, 3), (6, 8, 8, 3), (6, 4, 4, 3)]
             assert cube.roughness == [0.0, 0.5, 1.0]
             # the host's offline conversion of one frame's map agrees with the probe's SH of it
-            result, env = s.state.runner.result, s.state.runner.environment
+            result = s.state.runner.result
+            env = await s.state.runner.environment()
             assert result.frame == env.frame
             mine = sh_from_map(result.equirect, "unity")
             assert np.allclose(mine.coefficients, env.to_json("unity")["coefficients"], rtol=1e-9, atol=1e-12)

@@ -32,9 +32,9 @@ def _load(shared_data: Path, name: str) -> np.ndarray:
     return coarse_equirect(np.where(np.isfinite(m) & (m > 0), m, 0).astype(np.float32), 256)
 
 
-def as_lights(sg: SGLighting, height: int = 256) -> LightSet:
+def as_lights(sg: SGLighting, height: int = 128) -> LightSet:
     """The SG lighting as lights the samplers' metric reads: each peak lobe (sharp) as a light of its
-    energy on its axis, the residual lobes' radiance summed at every pixel centre of a 256-row map."""
+    energy on its axis, the residual lobes' radiance summed at every pixel centre of a 128-row map."""
     peak = np.array([k == "peak" for k in sg.kinds], bool)
     d = equirect_directions(height).reshape(-1, 3)
     om = np.repeat(equirect_row_solid_angle(height), 2 * height)

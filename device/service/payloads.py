@@ -16,7 +16,7 @@ __all__ = ["sg_body", "sg_payload", "sh_payload"]
 
 async def sh_payload(st: ServiceState, conv: str) -> bytes | None:
     """The latest frame's SH body in ``conv``, encoded once per frame and convention."""
-    env = st.runner.environment
+    env = await st.runner.environment()
     if env is None:
         return None
     key = f"sh:{conv}"

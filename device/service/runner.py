@@ -104,8 +104,8 @@ def _encode(lights: LightSet) -> tuple[str, bytes]:
 
 
 def _environment(estimator: Any, result: Any, lights: LightSet) -> Any:
-    """The frame's SH + primary light (blocking; ``None`` if the result carries no map). A
-    failure here is logged and costs the hosts' formats one frame, never the light set."""
+    """A frame's SH + primary light (blocking; ``None`` if the result carries no map). A failure
+    is logged and costs the hosts' formats that frame, never the light set."""
     equirect = getattr(result, "equirect", None)
     if equirect is None:
         return None
@@ -115,11 +115,6 @@ def _environment(estimator: Any, result: Any, lights: LightSet) -> Any:
     except Exception:
         log.exception("SH / primary light estimate failed for frame %s", lights.frame)
         return None
-
-
-def _encode_frame(estimator: Any, result: Any, lights: LightSet) -> tuple[str, bytes, Any]:
-    text, payload = _encode(lights)
-    return text, payload, _environment(estimator, result, lights)
 
 
 class Runner:
@@ -146,8 +141,9 @@ class Runner:
         self.lights_text: str | None = None  # self.lights as JSON (serialised once, off the loop)
         from device.core.environment import EnvironmentEstimator
 
-        self.estimator = EnvironmentEstimator()  # SH + primary light, incremental, every frame
-        self.environment: Any = None  # the last frame's device.core.environment.Environment
+        self.estimator = EnvironmentEstimator()  # SH + primary light, incremental, on demand
+        self._env_cache: Any = None  # the Environment of the frame it was last asked for
+        self._env_lock = asyncio.Lock()
         self.stale = True
         self.last_progress: float | None = None
         self.last_activity: float | None = None  # a frame or a reconnect attempt (watchdog)
@@ -277,7 +273,7 @@ class Runner:
         lights: LightSet = result.lights
         if lights.stale:
             lights = dataclasses.replace(lights, stale=False)
-        text, payload, env = await asyncio.to_thread(_encode_frame, self.estimator, result, lights)
+        text, payload = await asyncio.to_thread(_encode, lights)
         now = time.monotonic()
         if self._last_frame_t is not None:
             dt = max(now - self._last_frame_t, 1e-6)
@@ -285,12 +281,31 @@ class Runner:
         self._last_frame_t = now
         self.result, self.lights, self.stale = result, lights, False
         self.lights_text = text
-        self.environment = env
         self.frames += 1
         self.frames_skipped += int(bool(getattr(result, "skipped", False)))
         self.last_progress = self.last_activity = now
         self.cache.clear()
         await self.hub.publish(payload)
+
+    async def environment(self) -> Any:
+        """The latest frame's SH + primary light (``device.core.environment.Environment``), or
+        ``None`` before the first frame. Computed when first asked for each frame (in a worker
+        thread), so a probe nobody asks for SH spends nothing on it; the estimator compares each
+        map with the last one it saw, so the update stays incremental whatever frames it skips."""
+        result, lights = self.result, self.lights
+        if result is None or lights is None:
+            return None
+        env = self._env_cache
+        if env is not None and env.frame == int(lights.frame):
+            return env
+        async with self._env_lock:
+            env = self._env_cache
+            if env is not None and env.frame == int(lights.frame):
+                return env
+            env = await asyncio.to_thread(_environment, self.estimator, result, lights)
+            if env is not None:
+                self._env_cache = env
+            return env
 
     async def _mark_stale(self) -> None:
         # encode first, then switch the flag, the set and its JSON together: a reader never sees

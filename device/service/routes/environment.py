@@ -1,14 +1,14 @@
 """Host formats of the live lighting (``device.formats``), under ``/api/v1``:
 
 - ``GET sh?convention=canonical|threejs|webxr|filament|unity``: order-2 SH (all light and
-  ambient) plus the primary light, JSON (``device.core.environment``), every frame;
+  ambient) plus the primary light, JSON (``device.core.environment``), for the latest frame;
 - ``GET cubemap.ktx2?size=N&levels=M``: the GGX-prefiltered cube map (RGBA16F KTX2), and
   ``GET cubemap/{px,nx,py,ny,pz,nz}.exr?mip=m`` its faces as float32 EXR;
 - ``GET environment.gltf`` (+ ``environment/*.png``) and ``GET environment.usda`` (+ the latlong
   EXR files beside it): scene files with the probe's pose applied;
 - ``GET /view``: a live three.js view lit by all of it.
 
-The SH and primary light are computed by the frame loop (``Runner.environment``). Cubemaps and
+The SH and primary light are computed when asked, once per frame (``Runner.environment``). Cubemaps and
 scene files are built on request in a worker thread and kept until the *lighting* changes (keyed
 by a digest of the map, not by frame: a static room is filtered once). The map's pixels are an
 image of the room: everything here except ``sh`` needs the token unless
@@ -56,8 +56,9 @@ def _int(request: web.Request, name: str, lo: int, hi: int, default: int, *, pow
     return v
 
 
-def _latest(st: ServiceState) -> tuple[Any, Any]:
-    r, env = st.runner.result, st.runner.environment
+async def _latest(st: ServiceState) -> tuple[Any, Any]:
+    r = st.runner.result
+    env = await st.runner.environment() if r is not None else None
     if r is None or env is None:
         raise ApiError(503, "no frame yet: the pipeline is starting or the camera is reconnecting",
                        param="camera", headers={"Retry-After": "1"})
@@ -132,7 +133,7 @@ async def sh(request: web.Request) -> web.Response:
     if conv not in CONVENTIONS:
         raise InputError(f"convention must be one of {', '.join(CONVENTIONS)}, got {conv[:40]!r}",
                          param="convention")
-    _, env = _latest(st)
+    _, env = await _latest(st)
     body = env.to_json(conv)
     body["stale"] = st.runner.stale
     return web.json_response(body)
@@ -141,7 +142,7 @@ async def sh(request: web.Request) -> web.Response:
 async def sg(request: web.Request) -> web.Response:
     st = request.app[STATE]
     check_query(request, set())
-    _latest(st)
+    await _latest(st)
     data = await sg_payload(st)
     if data is None:
         raise ApiError(503, "no frame yet", param="camera", headers={"Retry-After": "1"})
@@ -154,7 +155,7 @@ async def cubemap_ktx2(request: web.Request) -> web.Response:
     st = request.app[STATE]
     check_query(request, {"size", "levels"})
     size, levels = _cube_params(request)
-    r, env = _latest(st)
+    r, env = await _latest(st)
     cache = request.app[CACHE]
     digest = await _map_digest(st, r)
     flt = cache.filter(size, levels)
@@ -183,7 +184,7 @@ async def cubemap_face(request: web.Request) -> web.Response:
     mip = _int(request, "mip", 0, 15, 0)
     if mip >= levels:
         raise ApiError(404, f"no mip {mip}: this chain has {levels} (0 .. {levels - 1})", param="mip")
-    r, env = _latest(st)
+    r, env = await _latest(st)
     cache = request.app[CACHE]
     digest = await _map_digest(st, r)
     flt = cache.filter(size, levels)
@@ -201,7 +202,7 @@ async def _scene(request: web.Request) -> tuple[dict[str, Any], dict[str, bytes]
     from device.formats.scene import gltf_environment, usd_environment
 
     st = request.app[STATE]
-    r, env = _latest(st)
+    r, env = await _latest(st)
     cache = request.app[CACHE]
     digest = await _map_digest(st, r)
     flt = cache.filter(64, 5)  # 64 down to 4, as the cube-map endpoint's default
