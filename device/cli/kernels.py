@@ -102,7 +102,7 @@ async def _exercise(frames: int) -> dict[str, object]:
                     for _ in range(frames):
                         await ws.receive(timeout=300)
                 paths = ["/status", "/lights", "/q2tree", "/preview.jpg", "/preview.jpg?view=equirect",
-                         "/probe.exr", "/probe.hdr", "/sh", "/cubemap.ktx2", "/environment.gltf"]
+                         "/probe.exr", "/probe.hdr", "/sh", "/sg", "/cubemap.ktx2", "/environment.gltf"]
                 paths += [f"/lights?method={m}&count=64" for m in sorted(SAMPLERS)]
                 for path in paths:
                     async with c.get(url + path) as r:
