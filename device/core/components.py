@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["DEFAULT_CONTRAST", "DEFAULT_RELATIVE", "peak_threshold", "sphere_labels"]
+__all__ = ["DEFAULT_CONTRAST", "DEFAULT_RELATIVE", "block_pixels", "peak_threshold", "sphere_labels"]
 
 DEFAULT_RELATIVE = 0.02
 DEFAULT_CONTRAST = 20.0
@@ -63,3 +63,13 @@ def sphere_labels(mask: np.ndarray) -> tuple[np.ndarray, int]:
     uniq, relabel = np.unique(roots[1:], return_inverse=True)
     lut = np.concatenate([[0], relabel + 1])
     return lut[labels], len(uniq)
+
+
+def block_pixels(mask: np.ndarray, f: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution (row, col) of every pixel of the f x f blocks a coarse ``mask`` selects,
+    rows below ``rows`` only (a region found on a reduction, read back at full resolution)."""
+    br, bc = np.nonzero(mask)
+    r_idx = (br[:, None, None] * f + np.arange(f)[None, :, None] + np.zeros(f, np.int64)[None, None, :]).reshape(-1)
+    c_idx = (bc[:, None, None] * f + np.zeros(f, np.int64)[None, :, None] + np.arange(f)[None, None, :]).reshape(-1)
+    keep = r_idx < rows
+    return r_idx[keep], c_idx[keep]

@@ -88,7 +88,7 @@ def extract_primary(equirect: np.ndarray, *, rows: int | None = None,
     ``rows``: only the first rows hold light (the probe's upper hemisphere); ``min_energy_fraction``:
     a peak carrying less of the map's luminance is not worth a light of its own.
     """
-    from device.core.components import peak_threshold
+    from device.core.components import block_pixels, peak_threshold
     from device.core.components import sphere_labels as _sphere_labels
 
     a = np.asarray(equirect)
@@ -121,13 +121,7 @@ def extract_primary(equirect: np.ndarray, *, rows: int | None = None,
     # the primary's coarse blocks, at full resolution: pixels that exceed the threshold give up
     # their excess
     f = h // ch
-    br, bc = np.nonzero(labels[:crow] == best)
-    r_idx = (br[:, None, None] * f + np.arange(f)[None, :, None]
-             + np.zeros(f, np.int64)[None, None, :]).reshape(-1)
-    c_idx = (bc[:, None, None] * f + np.zeros(f, np.int64)[None, :, None]
-             + np.arange(f)[None, None, :]).reshape(-1)
-    inside = r_idx < rows
-    r_idx, c_idx = r_idx[inside], c_idx[inside]
+    r_idx, c_idx = block_pixels(labels[:crow] == best, f, rows)
     lum = lum_full[r_idx, c_idx].astype(np.float64)
     sel = lum > t
     if not sel.any():

@@ -42,10 +42,11 @@ import numpy as np
 from device.core.errors import InputError
 from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
 
-__all__ = ["FACES", "Cubemap", "CubemapFilter", "face_directions", "ggx_weight", "mip_roughness",
+__all__ = ["FACES", "FACE_NAMES", "Cubemap", "CubemapFilter", "face_directions", "ggx_weight", "mip_roughness",
            "sample_equirect"]
 
 FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")  # the same faces in file and URL names
 FINE_HEIGHT = 128
 FINE_FRACTION = 0.7  # finest points at most this share of the lobe half-width
 NEAR = 2.0  # cells within this many lobe half-widths of a direction are opened

@@ -37,12 +37,10 @@ import numpy as np
 from device.core.environment import Environment
 from device.core.sh import ZONAL_IRRADIANCE
 
-from .cubemap import FACES, Cubemap
+from .cubemap import FACE_NAMES, FACES, Cubemap
 
 __all__ = ["gltf_environment", "rgbd_encode", "usd_environment"]
 
-_FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
-assert len(_FACE_NAMES) == len(FACES)
 
 
 def rgbd_encode(rgb: np.ndarray) -> np.ndarray:
@@ -118,7 +116,7 @@ def gltf_environment(env: Environment, cubemap: Cubemap, image_dir: str = "envir
     spec: list[list[int]] = []
     for m, mip in enumerate(cubemap.mips):
         row = []
-        for f, name in enumerate(_FACE_NAMES):
+        for f, name in enumerate(FACE_NAMES):
             uri = f"{image_dir}/specular_{m}_{name}.png"
             files[uri] = _png(rgbd_encode(mip[f]))
             row.append(len(images))

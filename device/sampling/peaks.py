@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from device.core.components import DEFAULT_CONTRAST, DEFAULT_RELATIVE, peak_threshold
@@ -114,6 +115,19 @@ def find_peaks(equirect: np.ndarray, *, threshold: float | None = None,
     return peaks
 
 
+@numba.njit(cache=True, nogil=True)
+def _block_power(m: np.ndarray, omega: np.ndarray, f: int, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Power (radiance x solid angle, float64) of f x f blocks of a float32 map, added to ``out``."""
+    for r in range(m.shape[0]):
+        om = omega[r]
+        i = r // f
+        for b in range(out.shape[1]):
+            for c in range(b * f, b * f + f):
+                out[i, b, 0] += m[r, c, 0] * om
+                out[i, b, 1] += m[r, c, 1] * om
+                out[i, b, 2] += m[r, c, 2] * om
+
+
 def coarse_equirect(equirect: np.ndarray, height: int = 64) -> np.ndarray:
     """Energy-preserving block average of an (H, 2H, 3) map down to (height, 2 height, 3).
 
@@ -124,10 +138,8 @@ def coarse_equirect(equirect: np.ndarray, height: int = 64) -> np.ndarray:
     h, w = equirect.shape[:2]
     if h <= height or h % height:
         return np.asarray(equirect, np.float32)
-    f = h // height
-    omega_row = equirect_row_solid_angle(h, w)
-    p = equirect.astype(np.float64) * omega_row[:, None, None]
-    p = p.reshape(height, f, 2 * height, f, 3).sum(axis=(1, 3))
+    p = np.zeros((height, 2 * height, 3))
+    _block_power(np.ascontiguousarray(equirect, np.float32), equirect_row_solid_angle(h, w), h // height, p)
     return (p / equirect_row_solid_angle(height)[:, None, None]).astype(np.float32)
 
 

@@ -40,11 +40,11 @@ import math
 from functools import lru_cache
 from typing import Any
 
-import numba
 import numpy as np
 
 from device.core.sg import SGLighting, level_sharpness, lobe_integral, sharpness_from_resultant
 from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
+from device.sampling.peaks import coarse_equirect
 
 __all__ = ["DEFAULT_LEVELS", "fit_sg"]
 
@@ -62,28 +62,6 @@ def _clean(a: np.ndarray) -> np.ndarray:
     if not (np.isfinite(mn) and np.isfinite(mx) and mn >= 0):
         a = np.where(np.isfinite(a) & (a > 0), a, np.float32(0))
     return a
-
-
-@numba.njit(cache=True, nogil=True)
-def _block_power(m: np.ndarray, omega: np.ndarray, f: int, out: np.ndarray) -> None:  # pragma: no cover
-    for r in range(m.shape[0]):
-        om = omega[r]
-        i = r // f
-        for b in range(out.shape[1]):
-            for c in range(b * f, b * f + f):
-                out[i, b, 0] += m[r, c, 0] * om
-                out[i, b, 1] += m[r, c, 1] * om
-                out[i, b, 2] += m[r, c, 2] * om
-
-
-def _reduce(m: np.ndarray, height: int) -> np.ndarray:
-    """Energy-preserving block means (height, 2 height, 3), float64."""
-    h, w = m.shape[:2]
-    if h == height:
-        return m.astype(np.float64)
-    p = np.zeros((height, 2 * height, 3))
-    _block_power(np.ascontiguousarray(m, np.float32), equirect_row_solid_angle(h, w), h // height, p)
-    return p / equirect_row_solid_angle(height)[:, None, None]
 
 
 @lru_cache(maxsize=8)
@@ -115,15 +93,6 @@ def _level_matrices(height: int, levels: tuple[int, ...]) -> tuple[Any, ...]:
     return tuple(out)
 
 
-def _pixels(mask: np.ndarray, f: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """Full-resolution (row, col) of the f x f blocks of a coarse mask, rows below ``rows``."""
-    br, bc = np.nonzero(mask)
-    r_idx = (br[:, None, None] * f + np.arange(f)[None, :, None] + np.zeros(f, np.int64)[None, None, :]).reshape(-1)
-    c_idx = (bc[:, None, None] * f + np.zeros(f, np.int64)[None, :, None] + np.arange(f)[None, None, :]).reshape(-1)
-    keep = r_idx < rows
-    return r_idx[keep], c_idx[keep]
-
-
 def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, relative: float, contrast: float
            ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], float]:
     """The peaks' excess pixels: a list of (directions (k, 3), power (k, 3), luminance power (k,))
@@ -131,7 +100,7 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
     luminance integral."""
     from scipy import ndimage
 
-    from device.core.components import peak_threshold, sphere_labels
+    from device.core.components import block_pixels, peak_threshold, sphere_labels
 
     h, w = full.shape[:2]
     ch = WORK_HEIGHT if h > WORK_HEIGHT and h % WORK_HEIGHT == 0 else h
@@ -161,8 +130,8 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
         comp = labels == lab
         grown = ndimage.binary_dilation(comp, cross, iterations=1)
         ring = ndimage.binary_dilation(grown, cross, iterations=2) & ~grown & (labels == 0)
-        r_idx, c_idx = _pixels(grown[:crow], f, rows)
-        rr, rc = _pixels(ring[:crow], f, rows)
+        r_idx, c_idx = block_pixels(grown[:crow], f, rows)
+        rr, rc = block_pixels(ring[:crow], f, rows)
         if len(r_idx) == 0:
             continue
         # the local background: the median of a ring around the region (per channel)
@@ -261,7 +230,7 @@ def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, re
             amps.append(mu)
             kinds.append("peak")
     hw = min(WORK_HEIGHT, h)
-    work = _reduce(full, hw)  # (hw, 2hw, 3) radiance, the peaks' excess removed
+    work = coarse_equirect(full, hw).astype(np.float64)  # (hw, 2hw, 3) radiance, the peaks' excess removed
     om = np.repeat(equirect_row_solid_angle(hw), 2 * hw)
     resid = work.reshape(-1, 3)
     total_lum = max(total, float(luminance(resid).dot(om)), 1e-300)

@@ -28,6 +28,7 @@ from aiohttp import web
 
 from device.core.errors import InputError
 from device.core.sh import CONVENTIONS
+from device.formats.cubemap import FACE_NAMES
 from device.service.errors import ApiError
 from device.service.payloads import sg_payload
 from device.service.routes.probe import check_query, static_handler
@@ -36,7 +37,6 @@ from device.service.state import STATE, ServiceState
 __all__ = ["add_routes"]
 
 API = "/api/v1"
-FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
 MAX_SIZE = 128
 _CACHE_ENTRIES = 8
 _FILTERS = 3
