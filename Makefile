@@ -12,7 +12,7 @@ SCENE ?= flashlight
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test,relight]'
+	$(BIN)/pip install --quiet -e '.[test,relight,mqtt]'
 	$(BIN)/python -m compileall -q device drivers sim calibration hostlink bench  # bytecode up front: faster service start
 	$(BIN)/lightprobe warm-kernels  # compile every numba kernel the service runs, once, at install
 	touch $(STAMP)

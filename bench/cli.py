@@ -20,6 +20,8 @@ BENCHMARKS = {
     "samplers": "run time against error for every sampler on the shared maps",
     "service": "WebSocket load: pipeline fps and memory with many clients",
     "relight": "cut relighting: error and frame time",
+    "fleet": "50 simulated probes at 10 Hz through one mosquitto into one merged stream: latency, CPU",
+    "cluster": "cut precompute in-process against a 2-worker Dask cluster: time, identity, overhead",
     "formats": "host formats: SH + primary light irradiance error and time, GGX cube map time and error",
     "live": "live rate: light sets per sensor and wall second, change latency, error at that rate, "
             "CPU per frame, start times, RSS",

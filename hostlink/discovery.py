@@ -11,7 +11,11 @@ liveness check (``liveness_s``, default 10 s) asks each mDNS probe's ``/api/v1/h
 forgets a probe after ``liveness_failures`` refused or timed-out connections in a row (a 503
 "not progressing" is alive); such a probe is re-added when it answers again.
 
-mDNS does not cross VLANs or routed networks: ``manual`` lists ``host:port`` addresses that are
+mDNS does not cross VLANs or routed networks: ``brokers`` lists MQTT brokers
+(``mqtt://host[:port]``) whose probes' retained status messages list them (``source="mqtt"``,
+``service_name`` = the broker URL; a probe is removed when its status turns ``offline``, which the
+broker publishes as the probe's last will when its connection dies); ``mdns=False`` browses no
+mDNS at all. ``manual`` lists ``host:port`` addresses that are
 polled on ``GET /api/v1/status`` every ``manual_poll_s`` and listed while they answer (their id
 comes from the status reply). ``interfaces`` restricts the mDNS sockets (e.g. ``["127.0.0.1"]``
 in tests; default: all IPv4 interfaces).
@@ -53,7 +57,7 @@ class ProbeInfo:
     version: str = ""
     model: str = ""
     sampler: str = ""
-    source: str = "mdns"  # "mdns" or "manual"
+    source: str = "mdns"  # "mdns", "manual" or "mqtt" (service_name is then the broker URL)
     service_name: str = ""
     seen: float = field(default=0.0, compare=False)
 
@@ -127,7 +131,16 @@ class Discovery:
                  manual_poll_s: float = 5.0, resolve_timeout_s: float = 3.0,
                  on_event: Callable[[ProbeEvent], None] | None = None,
                  token: str | None = None, liveness_s: float | None = 10.0,
-                 liveness_failures: int = 2) -> None:
+                 liveness_failures: int = 2, brokers: Sequence[str] = (), mdns: bool = True,
+                 mqtt_prefix: str | None = None) -> None:
+        from device.core.broker import DEFAULT_PREFIX, check_prefix, parse_broker_url
+
+        for b in brokers:
+            parse_broker_url(b, "brokers")
+        self.brokers = list(brokers)
+        self.mdns = bool(mdns)
+        self.mqtt_prefix = check_prefix(mqtt_prefix or DEFAULT_PREFIX, "mqtt_prefix")
+        self.feeds: dict[str, Any] = {}  # broker URL -> hostlink.mqtt.BrokerFeed (after start)
         self.interfaces = [_ipv4(a) for a in interfaces] if interfaces else None
         self.manual = [parse_address(a) for a in manual]
         self.manual_poll_s = float(manual_poll_s)
@@ -143,7 +156,8 @@ class Discovery:
         self._browser: AsyncServiceBrowser | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._gone: set[str] = set()  # service names removed since their last Added/Updated
-        self._changed: asyncio.Condition | None = None
+        self._change: asyncio.Future[None] | None = None  # resolved (and replaced) on each change
+        self._started = False
         self._poller: asyncio.Task[None] | None = None
 
     # ---- lifecycle ------------------------------------------------------------------------------
@@ -152,11 +166,20 @@ class Discovery:
         from zeroconf import InterfaceChoice, IPVersion
         from zeroconf.asyncio import AsyncServiceBrowser, AsyncZeroconf
 
-        self._changed = asyncio.Condition()
-        ifaces: Any = self.interfaces if self.interfaces else InterfaceChoice.All
-        self._azc = AsyncZeroconf(interfaces=ifaces, ip_version=IPVersion.V4Only)
-        self._browser = AsyncServiceBrowser(self._azc.zeroconf, [SERVICE_TYPE],
-                                            handlers=[self._on_state_change])
+        self._started = True
+        if self.mdns:
+            ifaces: Any = self.interfaces if self.interfaces else InterfaceChoice.All
+            self._azc = AsyncZeroconf(interfaces=ifaces, ip_version=IPVersion.V4Only)
+            self._browser = AsyncServiceBrowser(self._azc.zeroconf, [SERVICE_TYPE],
+                                                handlers=[self._on_state_change])
+        if self.brokers:
+            from hostlink.mqtt import BrokerFeed
+
+            for url in self.brokers:
+                feed = self.feeds[url] = BrokerFeed(
+                    url, prefix=self.mqtt_prefix,
+                    on_status=lambda pid, st, url=url: self._on_broker_status(url, pid, st))  # type: ignore[misc]
+                await feed.start()
         if self.manual:
             self._poller = asyncio.create_task(self._poll_manual(), name="hostlink-manual-poll")
         if self.liveness_s:
@@ -175,6 +198,9 @@ class Discovery:
                 await t
         self._tasks.clear()
         self._poller = self._liveness = None
+        for feed in self.feeds.values():
+            await feed.close()
+        self.feeds.clear()
         if self._azc is not None:
             await self._azc.async_close()
             self._azc = None
@@ -189,16 +215,21 @@ class Discovery:
     # ---- waiting --------------------------------------------------------------------------------
     async def wait_for(self, predicate: Callable[[dict[str, ProbeInfo]], bool],
                        within: float) -> dict[str, ProbeInfo]:
-        """Wait until ``predicate(probes)`` holds; raises ``TimeoutError`` after ``within`` s."""
-        assert self._changed is not None, "start() first"
-        cond = self._changed
+        """Wait until ``predicate(probes)`` holds; raises ``TimeoutError`` after ``within`` s.
 
-        async def wait() -> dict[str, ProbeInfo]:
-            async with cond:
-                await cond.wait_for(lambda: predicate(self.probes))
-                return dict(self.probes)
+        Waits on a plain future that every change resolves (no lock to re-acquire: Python
+        3.11's ``wait_for`` around a ``Condition`` wait can swallow a cancellation and hang the
+        canceller when changes arrive in a burst, seen here with 50 MQTT probes leaving at once)."""
+        assert self._started, "start() first"
+        async with asyncio.timeout(within):
+            while not predicate(self.probes):
+                await self._next_change()
+        return dict(self.probes)
 
-        return await asyncio.wait_for(wait(), within)
+    def _next_change(self) -> asyncio.Future[None]:
+        if self._change is None or self._change.done():
+            self._change = asyncio.get_running_loop().create_future()
+        return asyncio.shield(self._change)
 
     async def _emit(self, kind: str, probe: ProbeInfo) -> None:
         log.info("probe %s %s at %s (%s)", probe.id, kind, probe.url, probe.source)
@@ -207,9 +238,8 @@ class Discovery:
                 self.on_event(ProbeEvent(kind, probe))
             except Exception:
                 log.exception("discovery: on_event handler failed")
-        if self._changed is not None:
-            async with self._changed:
-                self._changed.notify_all()
+        if self._change is not None and not self._change.done():
+            self._change.set_result(None)
 
     async def _put(self, info: ProbeInfo) -> None:
         self._lost.pop(info.id, None)
@@ -271,6 +301,31 @@ class Discovery:
             if p.source == "mdns" and p.service_name == name:
                 del self.probes[pid]
                 await self._emit("removed", p)
+
+    # ---- MQTT brokers ---------------------------------------------------------------------------
+    def _on_broker_status(self, broker: str, pid: str, status: dict[str, Any] | None) -> None:
+        """Feed handler (sync, on the loop): only schedule work."""
+        task = asyncio.get_running_loop().create_task(self._broker_status(broker, pid, status))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _broker_status(self, broker: str, pid: str, status: dict[str, Any] | None) -> None:
+        old = self.probes.get(pid)
+        if status is None or status.get("state") != "online":
+            if old is not None and old.source == "mqtt" and old.service_name == broker:
+                del self.probes[pid]
+                await self._emit("removed", old)
+            return
+        host, port = "", 0
+        with contextlib.suppress(Exception):
+            host, port = parse_address(str(status.get("url", "")))
+        if old is not None and old.source != "mqtt":
+            return  # the same probe is also on mDNS / manual: that entry wins (direct HTTP)
+        await self._put(ProbeInfo(
+            id=pid, name=str(status.get("name") or pid), host=host, port=port,
+            version=str(status.get("sw_version", "")), model=str(status.get("model", "")),
+            sampler=str(status.get("sampler", "")), source="mqtt", service_name=broker,
+            seen=time.monotonic()))
 
     # ---- manual addresses -----------------------------------------------------------------------
     async def _poll_manual(self) -> None:

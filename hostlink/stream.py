@@ -7,6 +7,11 @@ newest data (newest wins: a slow consumer skips states, nothing queues). A probe
 dropped (its last set is ``stale``), whose tree cannot be fetched, or that sent nothing for
 ``stale_after`` seconds drops out of the merge, which continues from the rest and lists it in
 ``extra["dropped"]``; a probe that discovery forgets (goodbye, TTL) is removed altogether.
+
+Probes found on an MQTT broker (``source="mqtt://host"``, or a :class:`Discovery` with
+``brokers``) are followed through the broker instead: one connection per broker for all of them
+(:class:`hostlink.mqtt.BrokerFeed`), the same light sets, no HTTP to the probe; their status
+turning ``offline`` (the probe's last will) removes them.
 """
 
 from __future__ import annotations
@@ -52,13 +57,19 @@ class MergedStream:
     :func:`hostlink.merge.merge_q2trees`.
     """
 
-    def __init__(self, source: Discovery | Sequence[str], *, count: int = 256,
+    def __init__(self, source: Discovery | Sequence[str] | str, *, count: int = 256,
                  method: str = "auto", target: Sequence[float] | None = None,
                  token: str | None = None, stale_after: float = 3.0,
                  backoff: tuple[float, float] = (0.25, 4.0), ids: Collection[str] | None = None,
                  **q2: Any) -> None:
         if method not in ("auto", "q2tree", "index"):
             raise MergeError(f"method must be 'auto', 'q2tree' or 'index', got {method!r}")
+        self._own: Discovery | None = None
+        if isinstance(source, str):
+            if not source.startswith(("mqtt://", "mqtts://")):
+                raise MergeError(f"a single source must be a broker URL (mqtt://host), got {source[:60]!r}; "
+                                 "pass probe URLs as a list")
+            source = self._own = Discovery(mdns=False, brokers=[source], liveness_s=None)
         self.source = source
         self.count, self.method = int(count), method
         self.target = None if target is None else np.asarray(target, np.float64).reshape(3)
@@ -75,6 +86,8 @@ class MergedStream:
     async def start(self) -> None:
         self._session = aiohttp.ClientSession()
         self._cond = asyncio.Condition()
+        if self._own is not None:
+            await self._own.start()
         if isinstance(self.source, Discovery):
             self._watch = asyncio.create_task(self._watch_discovery(self.source),
                                               name="hostlink-merge-watch")
@@ -95,6 +108,8 @@ class MergedStream:
         if self._session is not None:
             await self._session.close()
             self._session = None
+        if self._own is not None:
+            await self._own.close()
 
     async def __aenter__(self) -> MergedStream:
         await self.start()
@@ -115,9 +130,15 @@ class MergedStream:
         while True:
             now = {k: v for k, v in disc.probes.items() if self.ids is None or k in self.ids}
             for pid, info in now.items():
-                if seen.get(pid) is None or (seen[pid].host, seen[pid].port) != (info.host, info.port):
+                old = seen.get(pid)
+                if old is None or (old.host, old.port, old.source, old.service_name) != (
+                        info.host, info.port, info.source, info.service_name):
                     self._unfollow(pid)
-                    self._follow(pid, info.url)
+                    feed = disc.feeds.get(info.service_name) if info.source == "mqtt" else None
+                    if feed is not None:
+                        self._follow_feed(pid, feed)
+                    else:
+                        self._follow(pid, info.url)
             for pid in set(seen) - set(now):
                 self._unfollow(pid)
                 await self._notify()
@@ -133,6 +154,39 @@ class MergedStream:
         data = ProbeInput(key)
         task = asyncio.create_task(self._run(key, url), name=f"hostlink-follow-{key}")
         self._follows[key] = _Follow(url, task, data)
+
+    def _follow_feed(self, key: str, feed: Any) -> None:
+        data = ProbeInput(key)
+        task = asyncio.create_task(self._consume_feed(key, feed), name=f"hostlink-follow-mqtt-{key}")
+        self._follows[key] = _Follow(feed.url, task, data)
+
+    async def _consume_feed(self, key: str, feed: Any) -> None:
+        """A probe's light sets from the broker (newest wins: a slot of one, no queue)."""
+        slot: list[LightSet] = []
+        ready = asyncio.Event()
+
+        def got(ls: LightSet) -> None:
+            slot[:] = [ls]
+            ready.set()
+
+        feed.follow(key, got)
+        try:
+            while True:
+                await ready.wait()
+                ready.clear()
+                ls = slot.pop()
+                f = self._follows.get(key)
+                if f is None or f.task is not asyncio.current_task():
+                    return
+                f.data = ProbeInput(ls.probe or key, ls, None, ls.pose)
+                f.received = time.monotonic()
+                await self._notify()
+        finally:
+            feed.unfollow(key, got)
+
+    def latest(self) -> dict[str, LightSet]:
+        """The newest light set of each followed probe (what the next merge uses)."""
+        return {k: f.data.lights for k, f in self._follows.items() if f.data.lights is not None}
 
     def _unfollow(self, key: str) -> None:
         f = self._follows.pop(key, None)

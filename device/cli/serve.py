@@ -172,6 +172,9 @@ async def serve(a: argparse.Namespace) -> int:
     cfg = load_service_config(a.config, state_dir, env)
     host = a.host or cfg.get("service", "host")
     port = a.port if a.port is not None else cfg.get("service", "port")
+    from device.service.mqtt import MqttSettings
+
+    mqtt = MqttSettings.from_config(cfg, a.mqtt, env)  # a bad URL or password file: exit 2 now
     token = await asyncio.to_thread(_token_or_error, state_dir, load_or_create_token)
     probe_id = cfg.get("probe", "id") or await asyncio.to_thread(
         stable_probe_id, "/etc/machine-id", camera_identity(a.camera, state_dir))
@@ -181,7 +184,7 @@ async def serve(a: argparse.Namespace) -> int:
     make_camera = camera_factory(a.camera, a.scene, state_dir / "cache")
     app = create_app(cfg, make_camera, pipeline_factory(state_dir, probe_id),
                      token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
-                     backoff=(a.backoff_initial, a.backoff_max))
+                     backoff=(a.backoff_initial, a.backoff_max), mqtt=mqtt)
     guard = ConnectionGuard(max_connections=min(int(cfg.get("service", "max_connections")), raise_fd_limit()),
                             max_per_peer=int(cfg.get("service", "max_connections_per_peer")),
                             header_timeout=float(cfg.get("service", "header_timeout")),
@@ -237,6 +240,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=None, help="listen port (default from config, 8080; 0 = any)")
     p.add_argument("--config", default=None, help="TOML config file (default STATE_DIR/config.toml)")
     p.add_argument("--state-dir", default=None, help="state directory (default $STATE_DIRECTORY or ./state)")
+    p.add_argument("--mqtt", default=None, metavar="mqtt://HOST[:PORT]",
+                   help="also publish lights, SH, sensors and status to this MQTT broker, with Home "
+                        "Assistant discovery (overrides [mqtt] url; password: [mqtt] password_file "
+                        "or $LIGHTPROBE_MQTT_PASSWORD)")
     p.add_argument("--log-format", choices=["auto", "json", "text"], default="auto",
                    help="log format on stderr (auto: text on a terminal, JSON lines otherwise)")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])

@@ -29,7 +29,7 @@ from device.service.config import ServiceConfig
 from device.service.errors import ApiError, Handler, error_middleware
 from device.service.notify import Notifier
 from device.service.runner import PipelineLike, Runner
-from device.service.state import HOST, PORT, STATE, ServiceState
+from device.service.state import HOST, MQTT, PORT, STATE, ServiceState
 
 __all__ = ["create_app"]
 
@@ -291,6 +291,27 @@ async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
             await asyncio.wait_for(adv.close(), 2.0)
 
 
+async def _mqtt_ctx(app: web.Application) -> AsyncIterator[None]:
+    """Publish to the MQTT broker, if one is configured (a task: never holds up the server)."""
+    st = app[STATE]
+    settings = app[MQTT]
+    if settings is None:
+        yield
+        return
+    from device.service.mqtt import MqttPublisher, ServiceSource
+
+    host = app[HOST]
+    shown = "127.0.0.1" if host in ("0.0.0.0", "") else ("::1" if host == "::" else host)
+    url = f"http://[{shown}]:{app[PORT]}" if ":" in shown else f"http://{shown}:{app[PORT]}"
+    pub = st.mqtt = MqttPublisher(ServiceSource(st, url), settings)
+    pub.start()
+    try:
+        yield
+    finally:
+        await pub.stop(within=1.5)  # publishes "offline" itself
+        st.mqtt = None
+
+
 async def _notify_ctx(app: web.Application) -> AsyncIterator[None]:
     st = app[STATE]
     task = None
@@ -354,11 +375,12 @@ async def _watchdog(st: ServiceState, interval: float, host: str, port: int) -> 
 def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline: PipelineFactory, *,
                token: str, probe_id: str, port: int | None = None, host: str | None = None,
                notifier: Notifier | None = None,
-               backoff: tuple[float, float] = (0.5, 1.0)) -> web.Application:
+               backoff: tuple[float, float] = (0.5, 1.0), mqtt: Any = None) -> web.Application:
     """Build the service. ``make_camera()`` returns an unopened camera; ``make_pipeline(camera,
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
-    ``host`` are where the API listens (defaults from ``[service]``), for mDNS."""
+    ``host`` are where the API listens (defaults from ``[service]``), for mDNS. ``mqtt`` is a
+    :class:`device.service.mqtt.MqttSettings` to publish to a broker (``None``: off)."""
     from device.service.routes import calibration, environment, probe, q2tree
 
     app = web.Application(
@@ -367,6 +389,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     )
     app[PORT] = int(port if port is not None else config.get("service", "port"))
     app[HOST] = str(host if host is not None else config.get("service", "host"))
+    app[MQTT] = mqtt
     state_holder: dict[str, ServiceState] = {}
 
     def build(cfg: ServiceConfig) -> PipelineLike:  # runs in a worker thread (Runner)
@@ -383,6 +406,6 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     q2tree.add_routes(app)  # GET /api/v1/q2tree (binary tree for host-side merging)
     environment.add_routes(app, static)  # SH, cubemaps, glTF / USD, the live three.js view
     calibration.add_routes(app, getattr(make_pipeline, "state_dir", None), static)  # live calibration
-    app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _notify_ctx])
+    app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _mqtt_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)
     return app

@@ -1,6 +1,6 @@
 """Service configuration: a TOML file of flat tables, with defaults, validation and atomic writes.
 
-The file has four tables (every key optional; missing keys take the defaults below)::
+The file has five tables (every key optional; missing keys take the defaults below)::
 
     [service]   host, port, require_token_for_reads, public_images, allowed_hosts, cors_origins,
                 client_max_size, ws_send_timeout, max_connections, max_connections_per_peer,
@@ -8,6 +8,8 @@ The file has four tables (every key optional; missing keys take the defaults bel
     [pipeline]  fps, sampler, light_count, max_exposures, equirect_height, nside
     [probe]     name, id, model
     [mdns]      enabled, interfaces
+    [mqtt]      url, username, password_file, tls, ca_file, keepalive, topic_prefix, lights_rate,
+                sh_rate, sensors_rate, status_interval, discovery, discovery_prefix
 
 Reading uses :mod:`tomllib`; writing is our own small serialiser for flat tables of strings,
 numbers, booleans and lists of strings, done atomically (temp file in the same folder, fsync,
@@ -116,7 +118,47 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "interfaces": (list, [], "a list of interface addresses (empty = all)",
                        lambda v: all(isinstance(s, str) and 0 < len(s) < 64 for s in v) and len(v) <= 16),
     },
+    # publication to an MQTT broker (device.service.mqtt); off while url is empty
+    "mqtt": {
+        "url": (str, "", "mqtt://[USER@]HOST[:PORT] or mqtts://... (empty = off; no password in it)",
+                lambda v: v == "" or _is_broker(v)),
+        "username": (str, "", "a user name (or put it in the URL)", lambda v: len(v) <= 128 and v.isprintable()),
+        "password_file": (str, "", "a file holding the broker password (or $LIGHTPROBE_MQTT_PASSWORD)",
+                          lambda v: len(v) <= 4096 and v.isprintable()),
+        "tls": (bool, False, "true or false (mqtts:// implies true)", None),
+        "ca_file": (str, "", "a CA bundle for TLS (empty = the system's)", lambda v: len(v) <= 4096 and v.isprintable()),
+        "keepalive": (int, 10, "seconds in [2, 3600] (the broker declares a silent probe offline "
+                               "after 1.5 x this)", _in(2, 3600)),
+        "topic_prefix": (str, "lightprobe", "topic levels of [A-Za-z0-9_-] separated by '/'", lambda v: _is_prefix(v)),
+        "lights_rate": (float, 10.0, "light sets per second at most, in [0.1, 60]", _in(0.1, 60.0)),
+        "sh_rate": (float, 1.0, "SH bodies per second at most, in [0, 30] (0 = off)", _in(0.0, 30.0)),
+        "sensors_rate": (float, 1.0, "sensor updates per second, in [0.02, 10]", _in(0.02, 10.0)),
+        "status_interval": (float, 30.0, "seconds between status refreshes, in [1, 3600]", _in(1.0, 3600.0)),
+        "discovery": (bool, True, "true or false (Home Assistant MQTT discovery configs)", None),
+        "discovery_prefix": (str, "homeassistant", "topic levels of [A-Za-z0-9_-] separated by '/'",
+                             lambda v: _is_prefix(v)),
+    },
 }
+
+
+def _is_broker(v: str) -> bool:
+    from device.core.broker import parse_broker_url
+
+    try:
+        parse_broker_url(v, "mqtt.url")
+    except InputError:
+        return False
+    return True
+
+
+def _is_prefix(v: str) -> bool:
+    from device.core.broker import check_prefix
+
+    try:
+        check_prefix(v)
+    except InputError:
+        return False
+    return True
 
 # Keys that take effect only after a restart (the listening socket, the mDNS sockets, the map
 # geometry). A PUT saves them and reports them pending; the running service keeps the values it
@@ -125,7 +167,7 @@ RESTART_KEYS = {("service", "host"), ("service", "port"), ("service", "client_ma
                 ("service", "max_connections"), ("service", "max_connections_per_peer"),
                 ("service", "header_timeout"), ("service", "body_timeout"), ("service", "keepalive_timeout"),
                 ("mdns", "enabled"), ("mdns", "interfaces"), ("pipeline", "equirect_height"),
-                ("pipeline", "nside"), ("pipeline", "max_exposures")}
+                ("pipeline", "nside"), ("pipeline", "max_exposures")} | {("mqtt", k) for k in SCHEMA["mqtt"]}
 
 
 def _defaults() -> dict[str, dict[str, Any]]:

@@ -90,6 +90,7 @@ class ServiceState:
     pending: dict[str, dict[str, Any]] = field(default_factory=dict)  # saved, applied at restart
     saved: ServiceConfig | None = None  # the config as saved (restart-only keys included), if it differs
     guard: Any = None  # device.service.guard.ConnectionGuard of the listening socket, if any
+    mqtt: Any = None  # device.service.mqtt.MqttPublisher while publishing to a broker
     _camera_lock: threading.Lock = field(default_factory=threading.Lock)
     _camera_error: Exception | None = None
 
@@ -123,3 +124,4 @@ class ServiceState:
 STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
 PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
 HOST: web.AppKey[str] = web.AppKey("lightprobe_host", str)
+MQTT: web.AppKey[Any] = web.AppKey("lightprobe_mqtt", object)  # MqttSettings or None

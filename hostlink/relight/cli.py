@@ -114,8 +114,10 @@ def _run(a: argparse.Namespace) -> int:
         raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
     scene = load_scene(a.scene)
     kind, lights = load_lights(a.lights, a.token)
+    from hostlink.relight.cluster import resolve
+
     pre = precompute(scene, tau=a.tau, spheres=a.spheres, grid=a.grid, cache_dir=a.cache,
-                     progress=not a.quiet)
+                     progress=not a.quiet, cluster=resolve(a.precompute_on))
     rl = Relighter(scene, pre)
     moves = dict(_parse_move(a.move))
     turns = dict(_parse_move(a.rotate, "--rotate", "NAME=rx,ry,rz (degrees)"))
@@ -160,6 +162,11 @@ def main(argv: list[str]) -> int:
     p.add_argument("--spheres", type=int, default=32, help="VCF spheres per movable object (default 32)")
     p.add_argument("--grid", type=int, default=32, help="VCF points per cube face side (default 32)")
     p.add_argument("--cache", type=Path, default=None, help="precompute cache dir (default ~/.cache/lightprobe/relight)")
+    p.add_argument("--precompute-on", default=None, metavar="tcp://HOST:8786|local",
+                   help="run the precompute's chunks on a Dask cluster: a scheduler address, or "
+                        "'local' for one worker process per core (default: $DASK_SCHEDULER_ADDRESS, "
+                        "else in this process); finished chunks are cached, so a rerun redoes only "
+                        "the missing ones")
     p.add_argument("--move", action="append", default=[], metavar="NAME=dx,dy,dz",
                    help="translate a movable object before rendering (repeatable)")
     p.add_argument("--rotate", action="append", default=[], metavar="NAME=rx,ry,rz",

@@ -99,6 +99,7 @@ async def status(request: web.Request) -> web.Response:
                       "frames_skipped": st.ws_frames_skipped},
         "mdns": {"advertised": st.advertiser.registered_names if st.advertiser is not None else []},
         "connections": st.guard.stats() if st.guard is not None else None,
+        "mqtt": st.mqtt.stats() if st.mqtt is not None else None,
         "pending_restart": sorted(f"{t}.{k}" for t, kv in st.pending.items() for k in kv),
     })
     return web.json_response(body)
