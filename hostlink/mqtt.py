@@ -22,7 +22,13 @@ import os
 from collections.abc import Callable
 from typing import Any
 
-from device.core.broker import DEFAULT_PREFIX, parse_broker_url, parse_status, probe_of_topic
+from device.core.broker import (
+    DEFAULT_PREFIX,
+    PASSWORD_ENV,
+    parse_broker_url,
+    parse_status,
+    probe_of_topic,
+)
 from device.core.errors import InputError
 from device.core.lightset import LightSet
 
@@ -30,7 +36,6 @@ __all__ = ["BrokerFeed"]
 
 log = logging.getLogger(__name__)
 
-PASSWORD_ENV = "LIGHTPROBE_MQTT_PASSWORD"
 
 
 class BrokerFeed:

@@ -365,7 +365,7 @@ async def test_fifty_probes_through_one_broker_into_one_merge(broker: Mosquitto)
     biggest = 0
     async with MergedStream(broker.url, count=64, method="auto", stale_after=2.0) as ms:
         fleet = asyncio.create_task(run_fleet(broker.url, 50, 10.0, 3.0))
-        async for merged in ms.updates(idle=5.0):
+        async for merged in ms.updates(idle=30.0):  # 50 connections first: no frames meanwhile
             for pid, ls in ms.latest().items():
                 frames.setdefault(pid, set()).add(ls.frame)
             biggest = max(biggest, len(merged.extra["merged_from"]))

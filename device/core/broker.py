@@ -30,6 +30,7 @@ from device.core.errors import InputError
 
 __all__ = [
     "DEFAULT_PREFIX",
+    "PASSWORD_ENV",
     "TOPICS",
     "BrokerAddress",
     "offline_payload",
@@ -39,6 +40,7 @@ __all__ = [
 ]
 
 DEFAULT_PREFIX = "lightprobe"
+PASSWORD_ENV = "LIGHTPROBE_MQTT_PASSWORD"  # the broker password, for probes and hosts alike
 TOPICS = ("status", "lights", "sh", "sensors")
 _PREFIX_RE = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
 

@@ -39,6 +39,7 @@ import numpy as np
 
 from device.core.broker import (
     DEFAULT_PREFIX,
+    PASSWORD_ENV,
     BrokerAddress,
     check_prefix,
     offline_payload,
@@ -52,7 +53,6 @@ __all__ = ["MqttPublisher", "MqttSettings", "cct_mccamy", "ha_discovery", "horiz
 
 log = logging.getLogger(__name__)
 
-PASSWORD_ENV = "LIGHTPROBE_MQTT_PASSWORD"
 
 # linear Rec. 709 / sRGB primaries, D65 white -> CIE XYZ
 _RGB_TO_XYZ = np.array([[0.4124564, 0.3575761, 0.1804375],
