@@ -21,7 +21,7 @@ import contextlib
 import dataclasses
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Collection, Sequence
+from collections.abc import AsyncIterator, Collection, Sequence
 from typing import Any
 
 import aiohttp
@@ -78,14 +78,15 @@ class MergedStream:
         self.ids = None if ids is None else frozenset(ids)
         self._follows: dict[str, _Follow] = {}
         self._session: aiohttp.ClientSession | None = None
-        self._cond: asyncio.Condition | None = None
+        self._change: asyncio.Future[None] | None = None  # resolved (and replaced) on each change
+        self._started = False
         self._version = 0
         self._watch: asyncio.Task[None] | None = None
 
     # ---- lifecycle ------------------------------------------------------------------------------
     async def start(self) -> None:
         self._session = aiohttp.ClientSession()
-        self._cond = asyncio.Condition()
+        self._started = True
         if self._own is not None:
             await self._own.start()
         if isinstance(self.source, Discovery):
@@ -174,13 +175,8 @@ class MergedStream:
             while True:
                 await ready.wait()
                 ready.clear()
-                ls = slot.pop()
-                f = self._follows.get(key)
-                if f is None or f.task is not asyncio.current_task():
+                if not await self._store(key, slot.pop(), None):
                     return
-                f.data = ProbeInput(ls.probe or key, ls, None, ls.pose)
-                f.received = time.monotonic()
-                await self._notify()
         finally:
             feed.unfollow(key, got)
 
@@ -211,18 +207,31 @@ class MergedStream:
                 except ProbeError as e:
                     log.info("%s: no tree this frame: %s", url, e)
                     ls = dataclasses.replace(ls, stale=True)
-            f = self._follows.get(key)
-            if f is None or f.task is not asyncio.current_task():
+            if not await self._store(key, ls, tree):
                 return
-            f.data = ProbeInput(ls.probe or key, ls, tree, ls.pose)
-            f.received = time.monotonic()
-            await self._notify()
+
+    async def _store(self, key: str, ls: LightSet, tree: Any) -> bool:
+        """Keep a probe's newest data and wake the merge; False when this task no longer
+        follows ``key`` (unfollowed or replaced), so it should end."""
+        f = self._follows.get(key)
+        if f is None or f.task is not asyncio.current_task():
+            return False
+        f.data = ProbeInput(ls.probe or key, ls, tree, ls.pose)
+        f.received = time.monotonic()
+        await self._notify()
+        return True
 
     async def _notify(self) -> None:
-        assert self._cond is not None
-        async with self._cond:
-            self._version += 1
-            self._cond.notify_all()
+        self._version += 1
+        if self._change is not None and not self._change.done():
+            self._change.set_result(None)
+
+    def _next_change(self) -> asyncio.Future[None]:
+        """A plain future, not a Condition (see :meth:`Discovery.wait_for`: the same Python
+        3.11 hang when a wait with a timeout is cancelled during a burst of changes)."""
+        if self._change is None or self._change.done():
+            self._change = asyncio.get_running_loop().create_future()
+        return asyncio.shield(self._change)
 
     # ---- merging --------------------------------------------------------------------------------
     def _inputs(self) -> list[ProbeInput]:
@@ -239,9 +248,6 @@ class MergedStream:
             out.append(d)
         return out
 
-    def _newer(self, seen: int) -> Callable[[], bool]:
-        return lambda: self._version > seen
-
     def merge_now(self) -> LightSet:
         """The merge of the newest data (raises :class:`MergeError` if no probe is usable)."""
         return merge_probes(self._inputs(), self.count, method=self.method, target=self.target,
@@ -250,12 +256,13 @@ class MergedStream:
     async def updates(self, idle: float | None = None) -> AsyncIterator[LightSet]:
         """Merged light sets, one per change of the inputs (newest wins). With ``idle``, that
         many seconds without any change ends the iteration with ``TimeoutError``."""
-        assert self._cond is not None, "start() first"
+        assert self._started, "start() first"
         seen = 0
         while True:
-            async with self._cond:
-                await asyncio.wait_for(self._cond.wait_for(self._newer(seen)), idle)
-                seen = self._version
+            async with asyncio.timeout(idle):
+                while self._version <= seen:
+                    await self._next_change()
+            seen = self._version
             try:
                 merged = await asyncio.to_thread(self.merge_now)
             except MergeError as e:
