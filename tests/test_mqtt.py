@@ -5,6 +5,7 @@ fleet of 50 simulated probes through one broker (#19)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -363,16 +364,27 @@ async def test_fifty_probes_through_one_broker_into_one_merge(broker: Mosquitto)
 
     frames: dict[str, set[int]] = {}
     biggest = 0
-    async with MergedStream(broker.url, count=64, method="auto", stale_after=2.0) as ms:
-        fleet = asyncio.create_task(run_fleet(broker.url, 50, 10.0, 3.0))
+
+    async def consume(ms: MergedStream) -> None:
+        nonlocal biggest
         async for merged in ms.updates(idle=30.0):  # 50 connections first: no frames meanwhile
             for pid, ls in ms.latest().items():
                 frames.setdefault(pid, set()).add(ls.frame)
             biggest = max(biggest, len(merged.extra["merged_from"]))
             assert merged.extra["merge"] == "index"
-            if fleet.done():
-                break
+
+    async with MergedStream(broker.url, count=64, method="auto", stale_after=2.0) as ms:
+        fleet = asyncio.create_task(run_fleet(broker.url, 50, 10.0, 3.0))
+        consumer = asyncio.create_task(consume(ms))
+        # The fleet's end is not a change the stream must report (the last frames may all be
+        # merged before it returns), so the fleet, not the stream, ends the test.
+        done, _ = await asyncio.wait({consumer, fleet}, return_when=asyncio.FIRST_COMPLETED)
+        if consumer in done:
+            consumer.result()  # an assertion or the idle timeout: raise it here
         out = await fleet
+        consumer.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await consumer
     assert biggest == 50
     assert len(frames) == 50
     seen = sum(len(v) for v in frames.values())
