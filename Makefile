@@ -6,6 +6,8 @@ STAMP := $(VENV)/.installed
 HOST ?= 127.0.0.1
 PORT ?= 8080
 SCENE ?= flashlight
+# the mesh /view shows beside its spheres: the shared cow when ../shared is beside the clone
+VIEW_MESH ?= $(wildcard ../shared/data/meshes/spot.obj)
 
 .PHONY: run test lint bench clean venv
 
@@ -20,7 +22,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/lightprobe serve --camera sim --scene $(SCENE) --host $(HOST) --port $(PORT)
+	$(BIN)/lightprobe serve --camera sim --scene $(SCENE) --host $(HOST) --port $(PORT) $(if $(VIEW_MESH),--view-mesh $(VIEW_MESH))
 
 NODE_TOOLS := tests/node/node_modules/.installed
 

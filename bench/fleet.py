@@ -218,6 +218,78 @@ async def measure(url: str, count: int, rate: float, seconds: float) -> dict[str
             "host_cpu_total_s": round(time.process_time() - cpu0, 2)}
 
 
+class _Sub:
+    """``mosquitto_sub -v`` lines with their arrival times (a reader thread)."""
+
+    def __init__(self, url: str, topic: str) -> None:
+        import threading
+
+        host, _, port = url.removeprefix("mqtt://").partition(":")
+        self.proc = subprocess.Popen(["mosquitto_sub", "-h", host, "-p", port or "1883", "-v", "-t", topic],
+                                     stdout=subprocess.PIPE, text=True)
+        self.lines: list[tuple[float, float, str, str]] = []  # (monotonic, wall, topic, payload)
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            t, _, payload = line.rstrip("\n").partition(" ")
+            self.lines.append((time.monotonic(), time.time(), t, payload))
+
+    def first(self, pred: Any, timeout: float) -> tuple[float, float, str, str]:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for ln in list(self.lines):
+                if pred(ln[2], ln[3]):
+                    return ln
+            time.sleep(0.005)
+        raise TimeoutError(f"no matching message within {timeout} s")
+
+    def close(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(5)
+
+
+def measure_start(url: str, runs: int = 3) -> dict[str, Any]:
+    """The real service (``lightprobe serve --camera sim --mqtt URL``) started as a user starts it,
+    ``mosquitto_sub -t 'lightprobe/#'`` already running: exec -> the retained ``online`` status,
+    exec -> the first light set, the first light set's own timestamp -> its arrival at the
+    subscriber (the MQTT path alone), and a subscriber started later -> the retained lights.
+    The first start (projection tables, kernel caches) is run and reported apart; ``runs`` warm
+    starts follow on the same state dir."""
+    with tempfile.TemporaryDirectory() as tmp:
+        state = Path(tmp) / "state"
+        state.mkdir()
+        (state / "config.toml").write_text('[mdns]\nenabled = false\n[probe]\nid = "start-1"\n')
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        rows = []
+        for k in range(runs + 1):
+            sub = _Sub(url, "lightprobe/start-1/#")
+            time.sleep(0.3)  # the subscriber is connected before the probe starts
+            sub.lines.clear()  # retained messages of the previous run
+            t0 = time.monotonic()
+            p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--port", "0",
+                                  "--state-dir", str(state), "--mqtt", url, "--log-format", "json"],
+                                 cwd=str(ROOT), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            try:
+                online = sub.first(lambda t, b: t.endswith("/status") and '"online"' in b, 120)
+                lights = sub.first(lambda t, b: t.endswith("/lights"), 120)
+                stamp = json.loads(lights[3])["timestamp"]
+                late = _Sub(url, "lightprobe/start-1/lights")
+                t_late = time.monotonic()
+                got = late.first(lambda t, b: True, 10)
+                late.close()
+            finally:
+                p.terminate()
+                p.wait(15)
+                sub.close()
+            rows.append({"warm": k > 0, "exec_to_online_s": round(online[0] - t0, 3),
+                         "exec_to_first_lights_s": round(lights[0] - t0, 3),
+                         "lights_timestamp_to_subscriber_ms": round(1e3 * (lights[1] - stamp), 1),
+                         "late_subscriber_to_retained_lights_ms": round(1e3 * (got[0] - t_late), 1)})
+    return {"runs": rows}
+
+
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     count, rate, seconds = (50, 10.0, 5.0) if quick else (50, 10.0, 20.0)
     with Mosquitto() as broker:
@@ -225,8 +297,10 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
         t0 = time.monotonic()
         res = asyncio.run(measure(broker.url, count, rate, seconds))
         res["broker_cpu_per_s"] = round((broker.cpu_seconds() - b0) / (time.monotonic() - t0), 3)
+        res["probe_start"] = measure_start(broker.url, 1 if quick else 3)
     res["summary"] = {"latency_ms": res["latency_ms"], "merged_sets_per_s": res["merged_sets_per_s"],
-                      "host_cpu_per_s": res["host_cpu_per_s"], "broker_cpu_per_s": res["broker_cpu_per_s"]}
+                      "host_cpu_per_s": res["host_cpu_per_s"], "broker_cpu_per_s": res["broker_cpu_per_s"],
+                      "probe_start": res["probe_start"]["runs"]}
     (out_dir / "fleet.json").write_text(json.dumps(res, indent=2))
     return res
 

@@ -192,12 +192,14 @@ async def test_threejs_renders_the_probe_sh_and_the_webxr_estimate(shared_data: 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium not installed (apt-get install chromium)")
 @pytest.mark.timeout(300)
-async def test_live_view_page_updates_from_the_stream(tmp_path: Path, artifacts_dir: Path) -> None:
-    """``/view`` (linked from the dashboard) follows the stream's SH and loads the cube map."""
+async def test_live_view_page_updates_from_the_stream(tmp_path: Path, artifacts_dir: Path, shared_data: Path) -> None:
+    """``/view`` (linked from the dashboard) follows the stream's SH, loads the cube map, and shows
+    the configured mesh (the shared ``spot.obj``) in the torus knot's place."""
     from playwright.async_api import async_playwright
     from service_harness import running_service, service_config
 
-    cfg = service_config(tmp_path, pipeline={"fps": 10.0, "light_count": 64})
+    cfg = service_config(tmp_path, pipeline={"fps": 10.0, "light_count": 64},
+                         view={"mesh": str(shared_data / "meshes" / "spot.obj")})
     async with running_service(cfg) as s, async_playwright() as p:
         browser = await p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         try:
@@ -217,6 +219,13 @@ async def test_live_view_page_updates_from_the_stream(tmp_path: Path, artifacts_
             assert max(sh0) > 0
             await page.wait_for_function("!!window.lightprobeView.scene.children.find(o => o.material && o.material.envMap)",
                                          timeout=60_000)
+            await page.wait_for_function("window.lightprobeView.mesh.source === 'spot.obj'", timeout=30_000)
+            mesh = await page.evaluate("window.lightprobeView.mesh.triangles")
+            drawn = await page.evaluate("window.lightprobeView.scene.children"
+                                        ".filter(o => o.geometry && o.geometry.index).map(o => o.geometry.index.count / 3)")
+            assert mesh == 5856  # spot.obj's faces
+            assert 5856 in drawn, drawn  # in the scene ...
+            assert 12800 not in drawn, drawn  # ... in the torus knot's place
             shot = artifacts_dir / "view.png"
             await page.screenshot(path=str(shot))
             import cv2

@@ -184,7 +184,8 @@ async def serve(a: argparse.Namespace) -> int:
     make_camera = camera_factory(a.camera, a.scene, state_dir / "cache")
     app = create_app(cfg, make_camera, pipeline_factory(state_dir, probe_id),
                      token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
-                     backoff=(a.backoff_initial, a.backoff_max), mqtt=mqtt)
+                     backoff=(a.backoff_initial, a.backoff_max), mqtt=mqtt,
+                     view_mesh=a.view_mesh)
     guard = ConnectionGuard(max_connections=min(int(cfg.get("service", "max_connections")), raise_fd_limit()),
                             max_per_peer=int(cfg.get("service", "max_connections_per_peer")),
                             header_timeout=float(cfg.get("service", "header_timeout")),
@@ -244,6 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also publish lights, SH, sensors and status to this MQTT broker, with Home "
                         "Assistant discovery (overrides [mqtt] url; password: [mqtt] password_file "
                         "or $LIGHTPROBE_MQTT_PASSWORD)")
+    p.add_argument("--view-mesh", default=None, metavar="MESH.obj",
+                   help="an OBJ file /view shows beside its spheres (overrides [view] mesh)")
     p.add_argument("--log-format", choices=["auto", "json", "text"], default="auto",
                    help="log format on stderr (auto: text on a terminal, JSON lines otherwise)")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])

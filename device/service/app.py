@@ -29,7 +29,8 @@ from device.service.config import ServiceConfig
 from device.service.errors import ApiError, Handler, error_middleware
 from device.service.notify import Notifier
 from device.service.runner import PipelineLike, Runner
-from device.service.state import HOST, MQTT, PORT, STATE, ServiceState
+from device.service.state import HOST, MQTT, PORT, STATE, VIEW_MESH, ServiceState
+from device.service.viewmesh import load_view_mesh
 
 __all__ = ["create_app"]
 
@@ -375,12 +376,14 @@ async def _watchdog(st: ServiceState, interval: float, host: str, port: int) -> 
 def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline: PipelineFactory, *,
                token: str, probe_id: str, port: int | None = None, host: str | None = None,
                notifier: Notifier | None = None,
-               backoff: tuple[float, float] = (0.5, 1.0), mqtt: Any = None) -> web.Application:
+               backoff: tuple[float, float] = (0.5, 1.0), mqtt: Any = None,
+               view_mesh: str | None = None) -> web.Application:
     """Build the service. ``make_camera()`` returns an unopened camera; ``make_pipeline(camera,
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
     ``host`` are where the API listens (defaults from ``[service]``), for mDNS. ``mqtt`` is a
-    :class:`device.service.mqtt.MqttSettings` to publish to a broker (``None``: off)."""
+    :class:`device.service.mqtt.MqttSettings` to publish to a broker (``None``: off); ``view_mesh``
+    an OBJ file for ``/view`` (``None``: ``[view] mesh``)."""
     from device.service.routes import calibration, environment, probe, q2tree
 
     app = web.Application(
@@ -390,6 +393,9 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     app[PORT] = int(port if port is not None else config.get("service", "port"))
     app[HOST] = str(host if host is not None else config.get("service", "host"))
     app[MQTT] = mqtt
+    mesh = str(config.get("view", "mesh")) if view_mesh is None else view_mesh
+    # a bad file stops the start with an error naming it (exit 2), not a blank view later
+    app[VIEW_MESH] = load_view_mesh(mesh, "view.mesh" if view_mesh is None else "--view-mesh") if mesh else None
     state_holder: dict[str, ServiceState] = {}
 
     def build(cfg: ServiceConfig) -> PipelineLike:  # runs in a worker thread (Runner)

@@ -1,6 +1,6 @@
 """Service configuration: a TOML file of flat tables, with defaults, validation and atomic writes.
 
-The file has five tables (every key optional; missing keys take the defaults below)::
+The file has six tables (every key optional; missing keys take the defaults below)::
 
     [service]   host, port, require_token_for_reads, public_images, allowed_hosts, cors_origins,
                 client_max_size, ws_send_timeout, max_connections, max_connections_per_peer,
@@ -10,6 +10,7 @@ The file has five tables (every key optional; missing keys take the defaults bel
     [mdns]      enabled, interfaces
     [mqtt]      url, username, password_file, tls, ca_file, keepalive, topic_prefix, lights_rate,
                 sh_rate, sensors_rate, status_interval, discovery, discovery_prefix
+    [view]      mesh
 
 Reading uses :mod:`tomllib`; writing is our own small serialiser for flat tables of strings,
 numbers, booleans and lists of strings, done atomically (temp file in the same folder, fsync,
@@ -138,6 +139,10 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "discovery_prefix": (str, "homeassistant", "topic levels of [A-Za-z0-9_-] separated by '/'",
                              lambda v: _is_prefix(v)),
     },
+    "view": {
+        "mesh": (str, "", "an OBJ file /view shows beside its spheres (empty = a torus knot)",
+                 lambda v: len(v) <= 4096 and v.isprintable()),
+    },
 }
 
 
@@ -167,7 +172,8 @@ RESTART_KEYS = {("service", "host"), ("service", "port"), ("service", "client_ma
                 ("service", "max_connections"), ("service", "max_connections_per_peer"),
                 ("service", "header_timeout"), ("service", "body_timeout"), ("service", "keepalive_timeout"),
                 ("mdns", "enabled"), ("mdns", "interfaces"), ("pipeline", "equirect_height"),
-                ("pipeline", "nside"), ("pipeline", "max_exposures")} | {("mqtt", k) for k in SCHEMA["mqtt"]}
+                ("pipeline", "nside"), ("pipeline", "max_exposures"), ("view", "mesh")} \
+    | {("mqtt", k) for k in SCHEMA["mqtt"]}
 
 
 def _defaults() -> dict[str, dict[str, Any]]:

@@ -125,3 +125,4 @@ STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
 PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
 HOST: web.AppKey[str] = web.AppKey("lightprobe_host", str)
 MQTT: web.AppKey[Any] = web.AppKey("lightprobe_mqtt", object)  # MqttSettings or None
+VIEW_MESH: web.AppKey[Any] = web.AppKey("lightprobe_view_mesh", object)  # viewmesh.ViewMesh or None

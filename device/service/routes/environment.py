@@ -32,7 +32,7 @@ from device.formats.cubemap import FACE_NAMES
 from device.service.errors import ApiError
 from device.service.payloads import sg_payload
 from device.service.routes.probe import check_query, static_handler
-from device.service.state import STATE, ServiceState
+from device.service.state import STATE, VIEW_MESH, ServiceState
 
 __all__ = ["add_routes"]
 
@@ -268,6 +268,19 @@ def _latlong(name: str) -> Any:
     return handler
 
 
+async def view_mesh(request: web.Request) -> web.Response:
+    """The OBJ file of ``[view] mesh`` for ``/view`` (404 when none is configured: the page then
+    shows its torus knot)."""
+    check_query(request, set())
+    mesh = request.app[VIEW_MESH]
+    if mesh is None:
+        raise ApiError(404, "no view mesh configured ([view] mesh or lightprobe serve --view-mesh)",
+                       param="view.mesh")
+    return web.Response(body=mesh.body, content_type="model/obj",
+                        headers={"Content-Disposition": f'inline; filename="{mesh.name}"',
+                                 "X-Mesh-Triangles": str(mesh.triangles)})
+
+
 def add_routes(app: web.Application, static_dir: Path) -> None:
     app[CACHE] = _LightingCache()
     r = app.router
@@ -280,4 +293,5 @@ def add_routes(app: web.Application, static_dir: Path) -> None:
     r.add_get(f"{API}/environment.usda", environment_usda)
     for name in ("environment_latlong.exr", "environment_ambient_latlong.exr"):
         r.add_get(f"{API}/{name}", _latlong(name))
-    r.add_get("/view", static_handler(static_dir, "view.html"))  # its files: routes.probe.STATIC_FILES
+    r.add_get("/view", static_handler(static_dir, "view.html"))
+    r.add_get("/view/mesh.obj", view_mesh)  # its files: routes.probe.STATIC_FILES

@@ -32,6 +32,42 @@ const knot = new THREE.Mesh(new THREE.TorusKnotGeometry(0.55, 0.2, 200, 32),
   new THREE.MeshStandardMaterial({ color: 0xffd27f, roughness: 0.35, metalness: 1.0 }));
 knot.position.x = 2.2;
 scene.add(glossy, lambertScene, knot);
+let meshInfo = { source: "torus knot", triangles: 0 };
+
+// The probe's [view] mesh (an OBJ file), when one is configured, takes the torus knot's place:
+// positions and faces (polygons as fans; v/vt/vn and negative indices), normals from three.js.
+function parseOBJ(text) {
+  const v = [], idx = [];
+  for (const line of text.split("\n")) {
+    const p = line.trim().split(/\s+/);
+    if (p[0] === "v") v.push(+p[1], +p[2], +p[3]);
+    else if (p[0] === "f") {
+      const n = v.length / 3;
+      const k = p.slice(1).map((r) => { const i = parseInt(r, 10); return i < 0 ? n + i : i - 1; });
+      for (let j = 1; j + 1 < k.length; j++) idx.push(k[0], k[j], k[j + 1]);
+    }
+  }
+  const g = new THREE.BufferGeometry();
+  g.setAttribute("position", new THREE.Float32BufferAttribute(v, 3));
+  g.setIndex(idx);
+  g.computeVertexNormals();
+  g.computeBoundingSphere();  // centred and scaled to the knot's place
+  const s = g.boundingSphere;
+  g.translate(-s.center.x, -s.center.y, -s.center.z);
+  g.scale(0.85 / s.radius, 0.85 / s.radius, 0.85 / s.radius);
+  return { geometry: g, triangles: idx.length / 3 };
+}
+
+fetch(withToken("/view/mesh.obj")).then(async (r) => {
+  if (!r.ok) return;  // none configured: the torus knot stays
+  const name = (r.headers.get("Content-Disposition") || "").match(/filename="([^"]+)"/);
+  const { geometry, triangles } = parseOBJ(await r.text());
+  knot.geometry.dispose();
+  knot.geometry = geometry;
+  meshInfo = { source: name ? name[1] : "mesh.obj", triangles };
+  document.getElementById("view-mesh").textContent = `${meshInfo.source} in metal (${triangles} triangles)`;
+  window.lightprobeView.mesh = meshInfo;
+}).catch((e) => { status.textContent += ` · view mesh: ${e}`; });
 
 // The PBR meshes take their light from the environment (which holds the ambient light),
 // the Lambert sphere from the SH light probe only: each light is counted once.
@@ -128,4 +164,4 @@ renderer.setAnimationLoop((t) => {
   knot.rotation.y = t * 0.0004;
   renderer.render(scene, camera);
 });
-window.lightprobeView = { scene, probe, sun, renderer };
+window.lightprobeView = { scene, probe, sun, renderer, mesh: meshInfo };
