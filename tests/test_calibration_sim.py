@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from itertools import pairwise
 
+import cv2
 import numpy as np
 import pytest
 
@@ -78,7 +79,10 @@ def test_sim_lens_recovered(sim190: tuple[FisheyeModel, list[View], float]) -> N
           f"reprojection vs truth up to {theta_max:.1f} deg: max {worst:.3f} px rms {rms:.3f} px, "
           f"rms {res.rms_px:.3f} px, used {len(res.used)}, rejected {len(res.rejected)}")
     # Issue 5: the true model is reprojected within 0.2 px over the part of the image circle the
-    # views cover (deterministic: seeded views; measured max 0.196 px, rms 0.129 px)
+    # views cover (seeded views; deterministic on one machine, not across CPUs: on an AMD EPYC
+    # max 0.196 px, rms 0.129 px; on an Intel Xeon the same code gave 0.381 / 0.230 px, two
+    # views failing OpenCV's extrinsic initialisation and SB's inward corner bias at the rim;
+    # with the readmission + bundle adjustment and the guarded corner polish 0.134 / 0.101 px)
     assert worst <= 0.2, (worst, rms)
     assert rms <= 0.2
     assert res.rms_px < 0.3
@@ -262,3 +266,38 @@ async def test_sim_camera_shows_the_board_through_its_lens() -> None:
         cam.show_board(None)
         await cam.capture()
         assert detect_board(frame_to_gray((await cam.capture()).data), BOARD) is None
+
+
+def test_bundle_adjustment_and_readmission_recover_the_true_model() -> None:
+    """The refinement behind the readmission of views OpenCV cannot initialise: from a 1%-off
+    start, exact corners lead back to the true lens and poses; a view rejected as
+    ill-conditioned that agrees with the solved model joins, one that does not stays out (boards
+    within 90 degrees: cv2.fisheye.projectPoints folds points behind the lens forward)."""
+    from calibration.fisheye import _bundle_adjust, _readmit
+
+    true = lens(190.0)
+    rng = np.random.default_rng(5)
+    views, rvecs, tvecs = [], [], []
+    for k in range(8):
+        pose = random_pose(rng, BOARD.cols, BOARD.rows, BOARD.square, theta_deg=rng.uniform(0, 45),
+                           distance=rng.uniform(0.35, 0.5))
+        tc = true_corners(true, pose, BOARD.cols, BOARD.rows, BOARD.square)
+        views.append(View(f"v{k}", tc, board_object_points(BOARD)))
+        rvecs.append(cv2.Rodrigues(pose.R)[0] + rng.normal(0, 0.01, (3, 1)))
+        tvecs.append(pose.t.reshape(3, 1) + rng.normal(0, 0.002, (3, 1)))
+    K0 = true.K * np.array([[1.01, 1, 1], [1, 0.99, 1], [1, 1, 1]])
+    sol = _bundle_adjust(views, K0, np.asarray(true.D) * 0.9, rvecs, tvecs)
+    assert sol is not None
+    rms, K, D, _, _ = sol
+    assert rms < 1e-6
+    np.testing.assert_allclose(K, true.K, rtol=1e-7, atol=1e-6)
+    np.testing.assert_allclose(D, true.D, rtol=1e-5, atol=1e-8)
+    # readmission: v6 agrees with the model, v7's corners are scrambled
+    bad = View("v7", views[7].corners[::-1] + rng.normal(0, 5.0, views[7].corners.shape), views[7].object_points)
+    rejected = {"v6": "ill-conditioned (InitExtrinsics)", "v7": "ill-conditioned (InitExtrinsics)"}
+    active, sol2, errs = _readmit([*views[:7], bad], views[:6], (rms, K, D, sol[3][:6], sol[4][:6]),
+                                  np.full(6, 0.05), rejected, 3.0, 1.0, lambda _m: None)
+    assert [v.name for v in active] == [f"v{k}" for k in range(7)]
+    assert rejected == {"v7": "ill-conditioned (InitExtrinsics)"}
+    assert float(np.max(errs)) < 1e-5
+    assert sol2[0] < 1e-5
