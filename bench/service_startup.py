@@ -207,10 +207,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 # ---- live figures (lightprobe bench live, part 2) ---------------------------------------------
 def _rss_mb(pid: int) -> tuple[float, float]:
     """(VmRSS, VmHWM) of a process in MB."""
@@ -305,3 +301,7 @@ def live_service_figures(quick: bool = False) -> dict[str, Any]:
                                                   env={"NUMBA_CACHE_DIR": str(base / "unit" / "cache" / "numba")})
         res["v4l2_fake"] = serve_live(base / "v4l2", camera="v4l2-fake", rss_after_s=rss_s)
     return res
+
+
+if __name__ == "__main__":  # at the end: main() uses the helpers defined above
+    sys.exit(main())

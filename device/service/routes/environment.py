@@ -28,7 +28,6 @@ from aiohttp import web
 
 from device.core.errors import InputError
 from device.core.sh import CONVENTIONS
-from device.formats.cubemap import FACE_NAMES
 from device.service.errors import ApiError
 from device.service.payloads import sg_payload
 from device.service.routes.probe import check_query, static_handler
@@ -174,6 +173,7 @@ async def cubemap_ktx2(request: web.Request) -> web.Response:
 
 async def cubemap_face(request: web.Request) -> web.Response:
     from device.core.imageio import exr_bytes
+    from device.formats.cubemap import FACE_NAMES  # numba: kept off the start-up path
 
     st = request.app[STATE]
     check_query(request, {"size", "levels", "mip"})
