@@ -218,32 +218,41 @@ async def measure(url: str, count: int, rate: float, seconds: float) -> dict[str
             "host_cpu_total_s": round(time.process_time() - cpu0, 2)}
 
 
-class _Sub:
-    """``mosquitto_sub -v`` lines with their arrival times (a reader thread)."""
+class Subscriber:
+    """``mosquitto_sub -v`` on topics (QoS 1), lines collected with their arrival
+    (``time.monotonic``) by a reader thread: ``lines`` is a list of (t, topic, payload). Used by
+    :func:`measure_start` and by ``tests/test_mqtt.py``."""
 
-    def __init__(self, url: str, topic: str) -> None:
+    def __init__(self, url: str, *topics: str) -> None:
         import threading
 
         host, _, port = url.removeprefix("mqtt://").partition(":")
-        self.proc = subprocess.Popen(["mosquitto_sub", "-h", host, "-p", port or "1883", "-v", "-t", topic],
-                                     stdout=subprocess.PIPE, text=True)
-        self.lines: list[tuple[float, float, str, str]] = []  # (monotonic, wall, topic, payload)
+        args = ["mosquitto_sub", "-h", host, "-p", port or "1883", "-v", "-q", "1"]
+        for t in topics:
+            args += ["-t", t]
+        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True)
+        self.lines: list[tuple[float, str, str]] = []
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             t, _, payload = line.rstrip("\n").partition(" ")
-            self.lines.append((time.monotonic(), time.time(), t, payload))
+            self.lines.append((time.monotonic(), t, payload))
 
-    def first(self, pred: Any, timeout: float) -> tuple[float, float, str, str]:
+    def wait(self, pred: Any, timeout: float) -> tuple[float, str, str]:
+        """The first line (from the start) whose ``pred(topic, payload)`` holds; TimeoutError
+        naming the topics seen if none comes within ``timeout`` s."""
         end = time.monotonic() + timeout
+        k = 0
         while time.monotonic() < end:
-            for ln in list(self.lines):
-                if pred(ln[2], ln[3]):
-                    return ln
+            while k < len(self.lines):
+                if pred(self.lines[k][1], self.lines[k][2]):
+                    return self.lines[k]
+                k += 1
             time.sleep(0.005)
-        raise TimeoutError(f"no matching message within {timeout} s")
+        raise TimeoutError(f"no matching message within {timeout} s; got topics "
+                           f"{sorted({t for _, t, _ in self.lines})}")
 
     def close(self) -> None:
         self.proc.terminate()
@@ -264,20 +273,21 @@ def measure_start(url: str, runs: int = 3) -> dict[str, Any]:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         rows = []
         for k in range(runs + 1):
-            sub = _Sub(url, "lightprobe/start-1/#")
+            sub = Subscriber(url, "lightprobe/start-1/#")
             time.sleep(0.3)  # the subscriber is connected before the probe starts
             sub.lines.clear()  # retained messages of the previous run
+            wall_minus_mono = time.time() - time.monotonic()
             t0 = time.monotonic()
             p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--port", "0",
                                   "--state-dir", str(state), "--mqtt", url, "--log-format", "json"],
                                  cwd=str(ROOT), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             try:
-                online = sub.first(lambda t, b: t.endswith("/status") and '"online"' in b, 120)
-                lights = sub.first(lambda t, b: t.endswith("/lights"), 120)
-                stamp = json.loads(lights[3])["timestamp"]
-                late = _Sub(url, "lightprobe/start-1/lights")
+                online = sub.wait(lambda t, b: t.endswith("/status") and '"online"' in b, 120)
+                lights = sub.wait(lambda t, b: t.endswith("/lights"), 120)
+                stamp = json.loads(lights[2])["timestamp"]
+                late = Subscriber(url, "lightprobe/start-1/lights")
                 t_late = time.monotonic()
-                got = late.first(lambda t, b: True, 10)
+                got = late.wait(lambda t, b: True, 10)
                 late.close()
             finally:
                 p.terminate()
@@ -285,7 +295,7 @@ def measure_start(url: str, runs: int = 3) -> dict[str, Any]:
                 sub.close()
             rows.append({"warm": k > 0, "exec_to_online_s": round(online[0] - t0, 3),
                          "exec_to_first_lights_s": round(lights[0] - t0, 3),
-                         "lights_timestamp_to_subscriber_ms": round(1e3 * (lights[1] - stamp), 1),
+                         "lights_timestamp_to_subscriber_ms": round(1e3 * (lights[0] + wall_minus_mono - stamp), 1),
                          "late_subscriber_to_retained_lights_ms": round(1e3 * (got[0] - t_late), 1)})
     return {"runs": rows}
 

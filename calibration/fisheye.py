@@ -115,8 +115,9 @@ def detect_board(image: np.ndarray, board: BoardSpec, *, thorough: bool = True,
             # SB's corners sit slightly inside the true saddle where squares are small and
             # compressed (fisheye rim): a 7 x 7 saddle refinement removes it. Measured: the
             # simulated 190-degree lens, radial bias at r = 200-300 px -0.047 -> -0.003 px; the
-            # real lim_8x6 photos, focal length vs the Ceres result +0.28% -> +0.01%. A corner the
-            # polish moves by more than half a pixel (a saddle squeezed past the rim) keeps SB's.
+            # real lim_8x6 photos (SB path), focal length vs the Ceres result +0.28% -> +0.10%. A
+            # corner the polish moves by more than half a pixel (a saddle squeezed past the rim)
+            # keeps SB's position: without that guard the 190-degree lens lost views.
             c0 = np.ascontiguousarray(c, np.float32).reshape(-1, 1, 2)
             c1 = cv2.cornerSubPix(gray, c0.copy(), (3, 3), (-1, -1),
                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4))
@@ -322,12 +323,8 @@ def _readmit(views: Sequence[View], active: list[View], sol: Solution, errs: np.
     for v in views:
         if v.name in names or rejected.get(v.name) not in _UNINITIALISED:
             continue
-        try:
-            ok, rv, tv = cv2.fisheye.solvePnP(v.object_points.reshape(-1, 1, 3), v.corners.reshape(-1, 1, 2),
-                                              K, D.reshape(4, 1))
-        except cv2.error:
-            continue
-        if ok and view_rms(v, K, D, rv, tv) <= limit:
+        e, rv, tv = _pnp_pose(v, K, D)
+        if e <= limit:
             joining.append((v, rv, tv))
     for _ in range(3):
         if not joining:
@@ -442,17 +439,24 @@ def _robust_loop(active: list[View], image_size: tuple[int, int], min_views: int
                      f"(need {min_views}); rejected: {', '.join(rejected) or 'none'}")
 
 
-def _pnp_rms(view: View, K: np.ndarray, D: np.ndarray) -> float:
-    """RMS of one view posed by ``cv2.fisheye.solvePnP`` under a fixed model (inf on failure)."""
+def _pnp_pose(view: View, K: np.ndarray, D: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(RMS, rvec, tvec) of one view posed by ``cv2.fisheye.solvePnP`` under a fixed model (RMS
+    inf on failure)."""
+    none = np.zeros((3, 1))
     try:
         ok, rvec, tvec = cv2.fisheye.solvePnP(view.object_points.reshape(-1, 1, 3),
                                               view.corners.reshape(-1, 1, 2), K, D.reshape(4, 1))
     except cv2.error:
-        return float("inf")
+        return float("inf"), none, none
     if not ok:
-        return float("inf")
+        return float("inf"), none, none
     e = view_rms(view, K, D, rvec, tvec)
-    return e if np.isfinite(e) else float("inf")
+    return (e if np.isfinite(e) else float("inf")), rvec, tvec
+
+
+def _pnp_rms(view: View, K: np.ndarray, D: np.ndarray) -> float:
+    """RMS of one view posed by ``cv2.fisheye.solvePnP`` under a fixed model (inf on failure)."""
+    return _pnp_pose(view, K, D)[0]
 
 
 def _grow(views: Sequence[View], image_size: tuple[int, int], min_views: int, outlier_factor: float,

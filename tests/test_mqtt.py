@@ -12,7 +12,6 @@ import os
 import shutil
 import signal
 import subprocess
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,7 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.fleet import Mosquitto, SyntheticProbe
+from bench.fleet import Mosquitto, Subscriber, SyntheticProbe
 from device.core.broker import parse_broker_url, probe_of_topic, topic
 from device.core.errors import InputError
 from device.service.mqtt import (
@@ -203,41 +202,6 @@ def broker() -> Iterator[Mosquitto]:
         yield b
 
 
-class Sub:
-    """``mosquitto_sub -v`` on topics, lines collected in a thread."""
-
-    def __init__(self, broker: Mosquitto, *topics: str) -> None:
-        args = ["mosquitto_sub", "-h", "127.0.0.1", "-p", str(broker.port), "-v", "-q", "1"]
-        for t in topics:
-            args += ["-t", t]
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True)
-        self.lines: list[tuple[float, str, str]] = []
-        self._t = threading.Thread(target=self._read, daemon=True)
-        self._t.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            t, _, payload = line.rstrip("\n").partition(" ")
-            self.lines.append((time.monotonic(), t, payload))
-
-    def wait(self, pred: Any, timeout: float) -> tuple[float, str, str]:
-        end = time.monotonic() + timeout
-        k = 0
-        while time.monotonic() < end:
-            while k < len(self.lines):
-                if pred(self.lines[k][1], self.lines[k][2]):
-                    return self.lines[k]
-                k += 1
-            time.sleep(0.02)
-        raise AssertionError(f"no matching message within {timeout} s; got topics "
-                             f"{sorted({t for _, t, _ in self.lines})}")
-
-    def close(self) -> None:
-        self.proc.terminate()
-        self.proc.wait(5)
-
-
 @needs_broker
 def test_the_probe_on_mosquitto_and_its_last_will(tmp_path: Path, broker: Mosquitto) -> None:
     from device.core.lightset import LightSet
@@ -250,7 +214,7 @@ def test_the_probe_on_mosquitto_and_its_last_will(tmp_path: Path, broker: Mosqui
         "mdns": {"enabled": False}, "probe": {"id": "hall-1", "name": "Hall"},
         "pipeline": {"fps": 10.0, "light_count": 32},
         "mqtt": {"keepalive": 2, "sensors_rate": 2.0, "status_interval": 5.0}}))
-    sub = Sub(broker, "lightprobe/#", "homeassistant/#")
+    sub = Subscriber(broker.url, "lightprobe/#", "homeassistant/#")
     p, url, _token = start_serve(state, "--mqtt", broker.url)
     try:
         _, _, body = sub.wait(lambda t, b: t == "lightprobe/hall-1/lights", 60)
@@ -284,7 +248,7 @@ def test_the_probe_on_mosquitto_and_its_last_will(tmp_path: Path, broker: Mosqui
             p.kill()
         sub.close()
     # retained: a subscriber that comes later still learns the probe is offline, and its last lights
-    late = Sub(broker, "lightprobe/hall-1/#")
+    late = Subscriber(broker.url, "lightprobe/hall-1/#")
     try:
         late.wait(lambda t, b: t.endswith("/status") and '"offline"' in b, 5)
         late.wait(lambda t, b: t.endswith("/lights"), 5)
@@ -300,7 +264,7 @@ def test_a_frozen_probe_goes_offline_after_its_keepalive(broker: Mosquitto) -> N
 
     from tests.test_service_cli import ROOT
 
-    sub = Sub(broker, "lightprobe/fleet000/status")
+    sub = Subscriber(broker.url, "lightprobe/fleet000/status")
     child = subprocess.Popen([sys.executable, "-m", "bench.fleet", broker.url, "1", "10", "60", "2"],
                              cwd=ROOT, stdout=subprocess.DEVNULL)
     try:

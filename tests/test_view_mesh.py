@@ -13,7 +13,7 @@ import aiohttp
 import pytest
 
 from device.core.errors import InputError
-from device.service.viewmesh import load_view_mesh
+from device.service.viewmesh import MAX_BYTES, load_view_mesh
 
 
 def test_the_shared_cow_is_read_as_the_page_draws_it(shared_data: Path) -> None:
@@ -93,3 +93,39 @@ async def test_the_mesh_is_served_and_none_is_a_404(tmp_path: Path, shared_data:
         body = await r.json()
         assert body["param"] == "view.mesh"
         assert "--view-mesh" in body["error"]
+
+
+def test_devices_and_oversized_files_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not a regular file"):
+        load_view_mesh("/dev/zero")  # would never end if read
+    with pytest.raises(InputError, match="not a regular file"):
+        load_view_mesh(tmp_path)
+    big = tmp_path / "big.obj"
+    with big.open("wb") as f:  # sparse: no disk used
+        f.truncate(MAX_BYTES + 10)
+    with pytest.raises(InputError, match="more than the") as e:
+        load_view_mesh(big)
+    assert "big.obj" in str(e.value)
+
+
+async def test_put_config_checks_a_new_mesh_before_saving_it(tmp_path: Path, shared_data: Path) -> None:
+    """A mesh the next start could not load is refused now (400, nothing saved), like a
+    ``service.host`` that does not resolve; a good one is saved and pending a restart."""
+    from service_harness import running_service, service_config
+
+    from device.service.config import load_config
+
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nf 1 2 3\n")
+    async with running_service(service_config(tmp_path)) as s, aiohttp.ClientSession() as http:
+        r = await http.put(s.api + "/config", json={"view": {"mesh": str(bad)}}, headers=s.auth)
+        assert r.status == 400
+        body = await r.json()
+        assert body["param"] == "view.mesh"
+        assert "bad.obj" in body["error"]
+        assert load_config(tmp_path / "config.toml").get("view", "mesh") == ""
+        spot = str(shared_data / "meshes" / "spot.obj")
+        r = await http.put(s.api + "/config", json={"view": {"mesh": spot}}, headers=s.auth)
+        assert r.status == 200
+        assert load_config(tmp_path / "config.toml").get("view", "mesh") == spot
+        assert (await r.json())["pending"]["view"]["mesh"] == spot  # takes effect at the next start

@@ -20,6 +20,7 @@ from aiohttp import web
 from device.service.config import ServiceConfig
 from device.service.notify import Notifier
 from device.service.runner import Runner
+from device.service.viewmesh import ViewMesh
 
 __all__ = ["HOST", "PORT", "STATE", "VERSION", "AuthFailures", "ServiceState"]
 
@@ -125,4 +126,4 @@ STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
 PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
 HOST: web.AppKey[str] = web.AppKey("lightprobe_host", str)
 MQTT: web.AppKey[Any] = web.AppKey("lightprobe_mqtt", object)  # MqttSettings or None
-VIEW_MESH: web.AppKey[Any] = web.AppKey("lightprobe_view_mesh", object)  # viewmesh.ViewMesh or None
+VIEW_MESH: web.AppKey[ViewMesh | None] = web.AppKey("lightprobe_view_mesh")

@@ -30,13 +30,16 @@ class ViewMesh:
 def load_view_mesh(path: str | Path, param: str = "view.mesh") -> ViewMesh:
     p = Path(path)
     try:
-        size = p.stat().st_size
-        if size > MAX_BYTES:
-            raise InputError(f"{p}: {param} is {size} bytes, more than the {MAX_BYTES} a browser is sent",
-                             param=param)
-        body = p.read_bytes()
+        if not p.exists():
+            raise InputError(f"{p}: cannot read {param}: no such file", param=param)
+        if not p.is_file():  # not a directory, FIFO or device (/dev/zero would never end)
+            raise InputError(f"{p}: {param} is not a regular file", param=param)
+        with p.open("rb") as f:
+            body = f.read(MAX_BYTES + 1)  # bounded even if the file grows meanwhile
     except OSError as e:
         raise InputError(f"{p}: cannot read {param}: {e.strerror or e}", param=param) from e
+    if len(body) > MAX_BYTES:
+        raise InputError(f"{p}: {param} is more than the {MAX_BYTES} bytes a browser is sent", param=param)
     try:
         text = body.decode("utf-8")
     except UnicodeDecodeError as e:

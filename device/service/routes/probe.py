@@ -218,6 +218,11 @@ async def put_config(request: web.Request) -> web.Response:
         if host != saved.get("service", "host") and not await _resolves(host):
             raise InputError(f"service.host {host!r} does not resolve to an address of this machine",
                              param="service.host")
+        mesh = new_saved.get("view", "mesh")
+        if mesh and mesh != saved.get("view", "mesh"):  # a file the next start could not load: 400 now
+            from device.service.viewmesh import load_view_mesh
+
+            await asyncio.to_thread(load_view_mesh, mesh)
         transport = request.transport
         if transport is None or transport.is_closing():
             raise ApiError(400, "client went away before the change was applied", param="body")
