@@ -124,6 +124,11 @@ async def lights(request: web.Request) -> web.Response:
     if pipeline is None:
         raise ApiError(503, "the camera is reconnecting: on-demand sampling needs a live pipeline",
                        param="camera", headers={"Retry-After": "1"})
+    if getattr(pipeline, "latest", True) is None:
+        # a pipeline rebuilt after a camera change or a calibration session: the published set
+        # is the old one's, the new one has no map yet. Not the client's fault: 503, not 400.
+        raise ApiError(503, "the pipeline is restarting: on-demand sampling resumes with its first frame",
+                       param="camera", headers={"Retry-After": "1"})
     ls = await asyncio.to_thread(pipeline.lights_on_demand, method or st.config.get("pipeline", "sampler"), count)
     ls.stale = st.runner.stale
     return web.Response(text=await asyncio.to_thread(lambda: json.dumps(ls.to_json())),
