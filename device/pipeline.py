@@ -58,7 +58,7 @@ from device.core.errors import InputError
 from device.core.sphere import equirect_row_solid_angle, luminance
 from drivers.base import Camera, Controls, Frame
 
-__all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "tone_map"]
+__all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "lights_on_demand", "tone_map"]
 
 log = logging.getLogger(__name__)
 
@@ -563,39 +563,11 @@ class Pipeline:
         return "relative" if self.calibration.photometric is None else self.calibration.photometric.unit
 
     def _sample(self, sampler: Any, equirect: np.ndarray, count: int) -> Any:
-        """``count`` lights that carry energy. A tree sampler keeps leaves over the empty lower
-        hemisphere (its 12 base quads cannot merge); those are not published, and the sampler
-        is asked for as many more as it wasted last time, so hosts get ``count`` useful lights."""
-        for _ in range(8):  # converges in 1-3 calls; later frames reuse the estimate
-            lights = sampler.sample(equirect, count + self._extra_lights)
-            keep = lights.rgb.sum(axis=1) > 0
-            wasted = int((~keep).sum())
-            short = count - (len(lights) - wasted)
-            if short == 0 or keep.sum() == 0 or (short > 0 and wasted == 0):
-                break
-            self._extra_lights = max(0, self._extra_lights + short)
-        if not keep.all():
-            lights = replace(lights, directions=lights.directions[keep], rgb=lights.rgb[keep],
-                             solid_angle=lights.solid_angle[keep], ids=lights.ids[keep])
+        lights, self._extra_lights = _useful_lights(sampler, equirect, count, self._extra_lights)
         lights.probe = self.config.probe_id
         lights.unit = self.unit
         if self.calibration.pose is not None:
             lights.pose = self.calibration.pose.to_json()
-        return lights
-
-    def lights_on_demand(self, method: str, count: int) -> Any:
-        """A light set from the current map with a fresh sampler (blocking: call in a thread)."""
-        if self.latest is None:
-            raise InputError("no frame captured yet", param="frame")
-        from device.sampling.registry import SAMPLERS
-
-        if method not in SAMPLERS:
-            raise InputError(f"method {method!r} is not one of {sorted(SAMPLERS)}", param="method")
-        if not 1 <= int(count) <= 10000:
-            raise InputError(f"count={count!r} must be in [1, 10000]", param="count")
-        latest = self.latest
-        lights = self._sample(self._make_sampler(method), latest.equirect, int(count))
-        lights.frame, lights.timestamp = latest.frame, latest.timestamp
         return lights
 
     def _update_stats(self, r: FrameResult) -> None:
@@ -679,3 +651,42 @@ class _Geometry:
         vals = np.stack([lut[codes[..., c].astype(np.intp), c, 0] for c in range(3)], axis=-1)
         gain = (np.where(self.inv_gain > 0, 1.0 / np.maximum(self.inv_gain, 1e-300), 0.0)).reshape(h, w)
         return (vals * gain[..., None]).astype(np.float32), self.projector.lens_mask
+
+
+def _useful_lights(sampler: Any, equirect: np.ndarray, count: int, extra: int) -> tuple[Any, int]:
+    """``count`` lights that carry energy, and the new ``extra``. A tree sampler keeps leaves
+    over the empty lower hemisphere (its 12 base quads cannot merge); those are not published,
+    and the sampler is asked for ``extra`` more (as many as it wasted last time), so hosts get
+    ``count`` useful lights."""
+    for _ in range(8):  # converges in 1-3 calls; later frames reuse the estimate
+        lights = sampler.sample(equirect, count + extra)
+        keep = lights.rgb.sum(axis=1) > 0
+        wasted = int((~keep).sum())
+        short = count - (len(lights) - wasted)
+        if short == 0 or keep.sum() == 0 or (short > 0 and wasted == 0):
+            break
+        extra = max(0, extra + short)
+    if not keep.all():
+        lights = replace(lights, directions=lights.directions[keep], rgb=lights.rgb[keep],
+                         solid_angle=lights.solid_angle[keep], ids=lights.ids[keep])
+    return lights, extra
+
+
+def lights_on_demand(result: FrameResult, method: str, count: int) -> Any:
+    """A light set of ``count`` lights from a published frame's map with a fresh ``method``
+    sampler (blocking: call in a thread). It needs the frame only, not the pipeline that made
+    it: a camera reconnecting, a calibration session or a pipeline rebuilt after a change all
+    keep the last good frame sampleable. The set carries that frame's number, time, probe, unit
+    and pose."""
+    from device.sampling.registry import SAMPLERS, make_sampler
+
+    if method not in SAMPLERS:
+        raise InputError(f"method {method!r} is not one of {sorted(SAMPLERS)}", param="method")
+    if not 1 <= int(count) <= 10000:
+        raise InputError(f"count={count!r} must be in [1, 10000]", param="count")
+    lights, _ = _useful_lights(make_sampler(method), result.equirect, int(count), 0)
+    published = result.lights
+    lights.frame, lights.timestamp = result.frame, result.timestamp
+    lights.probe, lights.unit = published.probe, result.unit
+    lights.pose = published.pose
+    return lights

@@ -8,7 +8,7 @@ import pytest
 
 from device.core.errors import InputError
 from device.core.sphere import angles_from_directions, equirect_integral
-from device.pipeline import Pipeline, PipelineConfig, tone_map
+from device.pipeline import Pipeline, PipelineConfig, lights_on_demand, tone_map
 from sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow
@@ -136,3 +136,26 @@ async def test_reopen_after_a_fault_keeps_tables_and_the_last_bracket():
     assert again[0].exposures == pytest.approx(schedule)
     assert cam.sequence - seq0 == len(again)
     assert all(not r.skipped or r.lights.frame == r.frame for r in again)
+
+
+async def test_on_demand_lights_need_the_published_frame_only():
+    """On-demand sampling works from a published frame alone (no pipeline: the service keeps
+    serving it while the camera reconnects, a calibration session holds the camera or a rebuilt
+    pipeline waits for its first frame): the set carries that frame's number, unit, probe and
+    pose, keeps its energy, and bad parameters are named."""
+    _pipe, results = await _run("room", 3, sampler="pharr", light_count=16, probe_id="probe-a")
+    published = results[-1]
+    ls = lights_on_demand(published, "median-cut", 8)
+    assert len(ls) == 8
+    assert (ls.frame, ls.timestamp) == (published.frame, published.timestamp)
+    assert (ls.unit, ls.probe, ls.pose) == (published.unit, "probe-a", published.lights.pose)
+    np.testing.assert_allclose(ls.total, equirect_integral(published.equirect), rtol=1e-5)
+    tree = lights_on_demand(published, "q2tree", 50)  # useful lights only, exactly as many
+    assert len(tree) == 50
+    assert (tree.rgb.sum(axis=1) > 0).all()
+    with pytest.raises(InputError) as e:
+        lights_on_demand(published, "nope", 8)
+    assert e.value.param == "method"
+    with pytest.raises(InputError) as e:
+        lights_on_demand(published, "pharr", 0)
+    assert e.value.param == "count"

@@ -128,8 +128,6 @@ def _document(static_dir: str) -> str:
                 extra |= {"408", "413"}
             if path in _CAMERA_PATHS:
                 extra.add("503")
-            if path == "/lights":
-                extra.add("409")  # on demand while a calibration session holds the camera
             if (path, method) in _SAVES:
                 extra.add("507")
             for code in sorted(extra):

@@ -43,8 +43,6 @@ class PipelineLike(Protocol):
 
     async def stop(self) -> None: ...
 
-    def lights_on_demand(self, method: str, count: int) -> LightSet: ...
-
 
 class FrameHub:
     """A single-slot broadcast: ``publish`` replaces the payload, waiters get the newest one.

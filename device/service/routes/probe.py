@@ -116,20 +116,12 @@ async def lights(request: web.Request) -> web.Response:
         if st.runner.lights_text is None:
             _current(st)
         return web.Response(text=st.runner.lights_text, content_type="application/json")
-    _current(st)
-    pipeline = st.runner.pipeline
-    if pipeline is None and st.runner.camera_state == "calibrating":
-        raise ApiError(409, "a calibration session holds the camera: on-demand sampling resumes when it ends "
-                       "(the published set is served meanwhile, marked stale)", param="camera")
-    if pipeline is None:
-        raise ApiError(503, "the camera is reconnecting: on-demand sampling needs a live pipeline",
-                       param="camera", headers={"Retry-After": "1"})
-    if getattr(pipeline, "latest", True) is None:
-        # a pipeline rebuilt after a camera change or a calibration session: the published set
-        # is the old one's, the new one has no map yet. Not the client's fault: 503, not 400.
-        raise ApiError(503, "the pipeline is restarting: on-demand sampling resumes with its first frame",
-                       param="camera", headers={"Retry-After": "1"})
-    ls = await asyncio.to_thread(pipeline.lights_on_demand, method or st.config.get("pipeline", "sampler"), count)
+    from device.pipeline import lights_on_demand
+
+    # from the published frame, not the pipeline: a camera reconnecting, a calibration session
+    # or a pipeline rebuilt after a change keeps the last good frame sampleable
+    r = _current(st)
+    ls = await asyncio.to_thread(lights_on_demand, r, method or st.config.get("pipeline", "sampler"), count)
     ls.stale = st.runner.stale
     return web.Response(text=await asyncio.to_thread(lambda: json.dumps(ls.to_json())),
                         content_type="application/json")
