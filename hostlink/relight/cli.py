@@ -1,4 +1,7 @@
-"""``lightprobe relight SCENE --lights (URL|MAP.exr|MAP.hdr|LIGHTS.json) --out IMAGE``.
+"""``lightprobe relight SCENE --lights (URL|MAP.exr|MAP.hdr|LIGHTS.json) --out IMAGE [--method cuts|sg]``.
+
+``--method sg`` (:mod:`hostlink.relight.sg`) needs no precompute; its ``--lights`` is a map, an SG
+JSON (``GET /api/v1/sg``'s body) or a probe URL, whose ``/api/v1/sg`` it fetches.
 
 URL forms: ``http://host:port`` (fetches ``/api/v1/lights``), or a full URL ending in
 ``probe.exr`` / ``probe.hdr`` / ``lights``. ``--live`` keeps a WebSocket on ``/api/v1/stream``
@@ -104,6 +107,69 @@ def _parse_move(items: list[str], flag: str = "--move", form: str = "NAME=dx,dy,
     return out
 
 
+def _sg_lights(src: str, token: str | None) -> tuple[str, Any]:
+    """-> ("map", equirect) or ("sg", SGLighting): a map, an SG JSON file, or a probe URL
+    (its ``/api/v1/sg``)."""
+    from device.core.sg import SGLighting
+
+    def parse(doc: Any, where: str) -> SGLighting:
+        try:
+            return SGLighting.from_json(doc)
+        except InputError as e:
+            raise InputError(f"{where}: {e}", param="--lights") from None
+
+    if src.startswith(("http://", "https://")):
+        base = src.rstrip("/")
+        if base.endswith(("probe.exr", "probe.hdr")):
+            return load_lights(src, token)
+        url = base if base.endswith("/sg") else (base + "/sg" if "/api/v1" in base else base + "/api/v1/sg")
+        body, ctype = _fetch(url, token)
+        try:
+            return "sg", parse(json.loads(body), url)
+        except json.JSONDecodeError:
+            raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
+    p = Path(src)
+    if p.suffix.lower() == ".json":
+        try:
+            doc = json.loads(p.read_text())
+        except OSError as e:
+            raise InputError(f"{p}: cannot read ({e.strerror})", param="--lights") from None
+        except json.JSONDecodeError as e:
+            raise InputError(f"{p}:{e.lineno}: invalid JSON ({e.msg})", param="--lights") from None
+        return "sg", parse(doc, str(p))
+    return load_lights(src, token)
+
+
+def _run_sg(a: argparse.Namespace, out: Path) -> int:
+    """``--method sg``: spherical Gaussians, per-pixel, no precompute (hostlink.relight.sg)."""
+    from hostlink.relight.render import write_image
+    from hostlink.relight.scene import load_scene
+    from hostlink.relight.sg import SGRelighter
+
+    if a.live:
+        raise InputError("--live re-renders with the cuts only: drop --method sg", param="--live")
+    scene = load_scene(a.scene)
+    kind, lights = _sg_lights(a.lights, a.token)
+    t0 = time.perf_counter()
+    rl = SGRelighter(scene, visibility=a.visibility, voxels=a.voxels)
+    names = [o.name for o in scene.objects]
+    moves = dict(_parse_move(a.move))
+    turns = dict(_parse_move(a.rotate, "--rotate", "NAME=rx,ry,rz (degrees)"))
+    for flag, d in (("--move", moves), ("--rotate", turns)):
+        for name in d:
+            if name not in names:
+                raise InputError(f"{flag}: {name!r} is not an object of {a.scene}", param=flag)
+    for name in set(moves) | set(turns):
+        rl.move(name, moves.get(name, np.zeros(3)), turns.get(name))
+    rl.set_equirect(lights) if kind == "map" else rl.set_sg(lights)
+    img, stats = rl.render(background=lights if kind == "map" else None)
+    write_image(out, img, mask=None)
+    if not a.quiet:
+        print(f"relight: wrote {out} (sg, {a.visibility} visibility, {len(rl.sg or [])} lobes, "
+              f"{int(stats['pixels'])} pixels, {time.perf_counter() - t0:.3f} s, no precompute)", file=sys.stderr)
+    return 0
+
+
 def _run(a: argparse.Namespace) -> int:
     from hostlink.relight.precompute import precompute
     from hostlink.relight.render import Relighter
@@ -112,6 +178,8 @@ def _run(a: argparse.Namespace) -> int:
     out = Path(a.out)
     if out.suffix.lower() not in (".png", ".exr"):
         raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
+    if a.method == "sg":
+        return _run_sg(a, out)
     scene = load_scene(a.scene)
     kind, lights = load_lights(a.lights, a.token)
     from hostlink.relight.cluster import resolve
@@ -153,11 +221,20 @@ def main(argv: list[str]) -> int:
 
     p = argparse.ArgumentParser(prog="lightprobe relight",
                                 description="Relight a scene (JSON scene file) with a probe's lights using "
-                                            "self-visibility cuts and visibility cut fields.")
+                                            "self-visibility cuts and visibility cut fields, or spherical "
+                                            "Gaussians (--method sg).")
     p.add_argument("scene", help="scene JSON file (meshes, materials, ground, camera)")
     p.add_argument("--lights", required=True,
                    help="probe URL (http://host:port), MAP.exr / MAP.hdr, or LIGHTS.json")
     p.add_argument("--out", required=True, help="output image, .png (tone-mapped) or .exr (linear)")
+    p.add_argument("--method", choices=("cuts", "sg"), default="cuts",
+                   help="cuts: visibility cuts (precomputed, cached; rigid motion); sg: spherical "
+                        "Gaussians with cone-traced visibility (no precompute; any object may move "
+                        "or deform; lambert and phong materials; --lights a map, an SG JSON or a "
+                        "probe URL, whose /api/v1/sg it reads)")
+    p.add_argument("--visibility", choices=("voxels", "rays"), default="voxels",
+                   help="with --method sg: voxel cone tracing (default) or Embree rays per cone")
+    p.add_argument("--voxels", type=int, default=128, help="with --method sg: voxel grid side (power of two, default 128)")
     p.add_argument("--tau", type=float, default=DEFAULT_TAU, help=f"SVC cut threshold (default {DEFAULT_TAU})")
     p.add_argument("--spheres", type=int, default=32, help="VCF spheres per movable object (default 32)")
     p.add_argument("--grid", type=int, default=32, help="VCF points per cube face side (default 32)")

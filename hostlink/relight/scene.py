@@ -237,7 +237,8 @@ def load_scene(path: str | Path) -> Scene:
     mats.setdefault("default", Material())
     g = doc.get("ground")
     if g:
-        allv = np.concatenate([o.mesh.vertices for o in objects])
+        # a ground alone (no objects) sits at y = 0 about the origin, 4 units wide by default
+        allv = np.concatenate([o.mesh.vertices for o in objects]) if objects else np.array([[-0.5, 0, -0.5], [0.5, 0, 0.5]])
         y = float(allv[:, 1].min()) if g.get("y", "auto") == "auto" else float(g["y"])
         gm = g.get("material", "default")
         if gm not in mats:

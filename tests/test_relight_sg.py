@@ -1,0 +1,247 @@
+"""SG relighting (Michiels et al. 2015; hostlink.relight.sg): closed forms, spot.obj on a ground plane
+under the six shared maps against the brute force (2^15 directions, every ray cast, the true map,
+so the SG fit's error counts), deformation, the CLI.
+
+Metric as in test_relight_accuracy.py: relative RMS over vertices of the luminance of the radiance
+towards the camera, every 5th vertex. Bounds are the measured figures with a margin (see
+BENCHMARKS.md); the issue's Lambert targets (3% rays / 8% voxels) are not met on every map and
+are not asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device.core.errors import InputError
+
+pytestmark = pytest.mark.slow
+
+MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
+        "dikhololo_night_1k.hdr", "interior_blender.exr"]
+
+
+def _scene_doc(shared: Path, clay: str = "phong") -> dict:
+    return {"version": 1,
+            "materials": {"clay": {"type": clay, "kd": [0.6, 0.5, 0.4], "ks": [0.2, 0.2, 0.2], "exponent": 20},
+                          "floor": {"type": "lambert", "kd": [0.5, 0.5, 0.5]}},
+            "objects": [{"name": "spot", "mesh": str(shared / "meshes" / "spot.obj"), "material": "clay"}],
+            "ground": {"y": "auto", "size": 3.0, "resolution": 24, "material": "floor"},
+            "camera": {"position": [2.0, 1.2, 2.5], "look_at": [0, -0.2, 0.4], "fov_deg": 40,
+                       "width": 96, "height": 72}}
+
+
+def _rel_rms(b: np.ndarray, ref: np.ndarray) -> float:
+    from device.core.sphere import luminance
+
+    y, yr = luminance(b), luminance(ref)
+    return float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
+
+
+def _reference(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
+    from hostlink.relight.precompute import scene_eps
+    from hostlink.relight.reference import brute_force_radiance
+
+    return brute_force_radiance(rl.vertices, rl.faces, rl.normals(), rl.matid, rl.mats, scene_eps(rl.scene),
+                                leaf, eye, vidx)
+
+
+@pytest.fixture(scope="module")
+def maps(envmap_paths: dict[str, Path]) -> list[np.ndarray]:
+    from device.core.imageio import read_hdr_image
+
+    return [read_hdr_image(envmap_paths[m]) for m in MAPS]
+
+
+@pytest.fixture(scope="module")
+def lobes(maps: list[np.ndarray]):  # type: ignore[no-untyped-def]
+    """The SG fit of each map, as a probe would serve it (fitted once)."""
+    from device.sampling.sgfit import fit_sg
+
+    return [fit_sg(m) for m in maps]
+
+
+@pytest.fixture(scope="module", params=["lambert", "phong"])
+def spot(request, shared_data: Path, maps: list[np.ndarray], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    from hostlink.relight.lighting import leaf_light_from_equirect
+    from hostlink.relight.scene import load_scene
+    from hostlink.relight.sg import SGRelighter
+
+    d = tmp_path_factory.mktemp("sg")
+    (d / "spot.json").write_text(json.dumps(_scene_doc(shared_data, request.param)))
+    scene = load_scene(d / "spot.json")
+    rl = SGRelighter(scene, visibility="rays")
+    vidx = np.arange(0, len(rl.vertices), 5)
+    leaf = np.stack([leaf_light_from_equirect(m) for m in maps])
+    ref = _reference(rl, leaf, scene.camera.position, vidx)
+    return request.param, scene, vidx, leaf, ref
+
+
+def test_zonal_cosine_matches_quadrature_and_limits() -> None:
+    """C(t) = integral exp(lam (p.w - 1)) max(a.w, 0) dw against a Fibonacci-sphere sum; as lam -> 0
+    it is pi for every t, for a sharp lobe (2 pi / lam) max(t, 0)."""
+    from hostlink.relight.sg import zonal_cosine
+
+    n = 400_000
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    r = np.sqrt(1 - z * z)
+    ph = k * np.pi * (3 - np.sqrt(5))
+    w = np.stack([r * np.cos(ph), r * np.sin(ph), z], 1)
+    t = np.linspace(-1, 1, 1025)
+    for lam in (0.5, 3.0, 20.0):
+        c = zonal_cosine(lam)
+        for ti in (-0.9, -0.2, 0.0, 0.4, 0.95):
+            a = np.array([np.sqrt(1 - ti * ti), 0.0, ti])
+            q = float((np.exp(lam * (w[:, 2] - 1)) * np.maximum(w @ a, 0)).sum() * 4 * np.pi / n)
+            assert np.interp(ti, t, c) == pytest.approx(q, rel=2e-3, abs=1e-6)
+    np.testing.assert_allclose(zonal_cosine(1e-7), np.pi, rtol=5e-5)
+    sharp = zonal_cosine(5000.0)
+    np.testing.assert_allclose(sharp[t > 0.05] * 5000 / (2 * np.pi), t[t > 0.05], rtol=2e-3)
+    assert np.all(sharp[t < -0.2] < 1e-12)
+
+
+def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """A ground plane alone (nothing can shadow it): the host's tables give the lobes' own
+    irradiance within 0.5% with rays (voxels: 8%, the cones' self-shadowing of a plane at grazing
+    light, the classic voxel-cone-tracing leak; measured up to 5.9% on rooitou's low sun): the reference sums the
+    residual lobes' SG radiance on 2^15 directions and adds the peaks (too sharp for those
+    directions: the sun is 0.5 deg) by their zonal integral, checked against quadrature above.
+    What is left in the tests below is visibility and the probe's fit."""
+    from device.core.sg import SGLighting
+    from hostlink.relight.directions import LEAF_SOLID_ANGLE, leaf_directions
+    from hostlink.relight.scene import load_scene
+    from hostlink.relight.sg import SGRelighter, zonal_cosine
+
+    doc = _scene_doc(shared_data, "lambert")
+    doc["objects"] = []
+    (tmp_path / "ground.json").write_text(json.dumps(doc))
+    scene = load_scene(tmp_path / "ground.json")
+    vidx = np.arange(0, 625, 7)
+    dirs = leaf_directions()
+    res, peaks = [], []
+    for sg in lobes:
+        keep = np.array([k == "residual" for k in sg.kinds])
+        res.append(SGLighting(sg.axes[keep], sg.sharpness[keep], sg.amplitude[keep], ["residual"] * int(keep.sum())))
+        peaks.append((sg.axes[~keep], sg.sharpness[~keep], sg.amplitude[~keep]))
+    leaf = np.stack([sg.radiance(dirs) * LEAF_SOLID_ANGLE for sg in res])
+    t = np.linspace(-1, 1, 1025)
+    for vis in ("rays", "voxels"):
+        rl = SGRelighter(scene, visibility=vis)
+        ref = _reference(rl, leaf, scene.camera.position, vidx)
+        kd = rl.mats[rl.matid[vidx], 1:4] / np.pi
+        for k, (ax, lam, amp) in enumerate(peaks):
+            for a, la, mu in zip(ax, lam, amp, strict=True):
+                ref[k] += kd * mu * np.interp(rl.normals()[vidx] @ a, t, zonal_cosine(float(la)))[:, None]
+        for k in range(len(MAPS)):
+            rl.set_sg(lobes[k])
+            err = _rel_rms(rl.vertex_radiance(scene.camera.position, vidx), ref[k])
+            print(vis, MAPS[k], f"{err:.4f}")
+            assert err <= (0.005 if vis == "rays" else 0.08), (vis, MAPS[k], err)
+
+
+# measured 2026-12-04 (BENCHMARKS.md "Issue 17"), bound = measured max + margin
+BOUNDS = {("lambert", "rays"): 0.045, ("phong", "rays"): 0.05,
+          ("lambert", "voxels"): 0.13, ("phong", "voxels"): 0.12}
+
+
+@pytest.mark.parametrize("visibility", ["rays", "voxels"])
+def test_spot_on_the_ground_under_every_map(spot, lobes, visibility: str) -> None:  # type: ignore[no-untyped-def]
+    from hostlink.relight.sg import SGRelighter
+
+    clay, scene, vidx, _leaf, ref = spot
+    rl = SGRelighter(scene, visibility=visibility)
+    errs = []
+    for k in range(len(MAPS)):
+        rl.set_sg(lobes[k])
+        errs.append(_rel_rms(rl.vertex_radiance(scene.camera.position, vidx), ref[k]))
+    print(clay, visibility, " ".join(f"{m}: {e:.4f}" for m, e in zip(MAPS, errs, strict=True)))
+    assert max(errs) <= BOUNDS[clay, visibility]
+    assert min(errs) > 0
+    if visibility == "voxels":   # cones approximate what the rays measure: never better than them
+        rays = SGRelighter(scene, visibility="rays")
+        rays.set_sg(lobes[3])
+        assert _rel_rms(rays.vertex_radiance(scene.camera.position, vidx), ref[3]) < errs[3]
+
+
+def test_a_deforming_mesh_keeps_its_accuracy_and_revoxelises_only_itself(spot, lobes) -> None:  # type: ignore[no-untyped-def]
+    """Deform the cow every frame (squash and shear, different each frame): no precompute, the
+    error against the brute force of the deformed scene stays within the static bounds, and only
+    the deformed object is voxelised again (the ground's voxels are the same array)."""
+    from hostlink.relight.sg import SGRelighter
+
+    clay, scene, vidx, leaf, _ref = spot
+    if clay != "phong":
+        pytest.skip("one material is enough for the deformation")
+    rl = SGRelighter(scene, visibility="voxels")
+    rl.set_sg(lobes[1])
+    rl.vertex_radiance(scene.camera.position, vidx)
+    ground = rl._occ[1]
+    rest = rl.objects[0].rest
+    lo = rest[:, 1].min()
+    for f in range(3):
+        v = rest.copy()
+        s = 1.0 - 0.12 * (f + 1)
+        v[:, 1] = lo + (v[:, 1] - lo) * s          # squash towards the ground
+        v[:, 0] += 0.15 * f * (v[:, 1] - lo)        # and shear
+        rl.set_vertices("spot", v)
+        b = rl.vertex_radiance(scene.camera.position, vidx)
+        assert rl._occ[1] is ground
+        ref = _reference(rl, leaf[1:2], scene.camera.position, vidx)[0]
+        err = _rel_rms(b, ref)
+        print(f"frame {f}: {err:.4f}")
+        assert err <= BOUNDS["phong", "voxels"]
+    with pytest.raises(InputError) as e:
+        rl.set_vertices("spot", rest[:10])
+    assert e.value.param == "vertices"
+    with pytest.raises(InputError, match="no object named 'cat'"):
+        rl.move("cat", np.zeros(3))
+
+
+def test_refuses_what_it_cannot_shade(shared_data: Path, tmp_path: Path) -> None:
+    from hostlink.relight.scene import load_scene
+    from hostlink.relight.sg import SGRelighter
+
+    doc = _scene_doc(shared_data, "ward")
+    (tmp_path / "w.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="lambert and phong, not 'ward'") as e:
+        SGRelighter(load_scene(tmp_path / "w.json"))
+    assert e.value.param == "material"
+    (tmp_path / "p.json").write_text(json.dumps(_scene_doc(shared_data)))
+    scene = load_scene(tmp_path / "p.json")
+    with pytest.raises(InputError) as e:
+        SGRelighter(scene, voxels=100)
+    assert e.value.param == "voxels"
+    with pytest.raises(InputError, match="no lighting yet"):
+        SGRelighter(scene).vertex_radiance(scene.camera.position)
+
+
+def test_cli_renders_without_precompute(shared_data: Path, envmap_paths: dict[str, Path], lobes, tmp_path: Path) -> None:
+    """``lightprobe relight SCENE --method sg`` from a map and from an SG JSON: an image, no cache
+    directory written; a bad flag is exit 2 naming it."""
+    import cv2
+
+    (tmp_path / "spot.json").write_text(json.dumps(_scene_doc(shared_data)))
+    sgj = tmp_path / "sg.json"
+    sgj.write_text(json.dumps(lobes[1].to_json()))
+    env = {"XDG_CACHE_HOME": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
+    for src in (str(envmap_paths["rooitou_park_1k.hdr"]), str(sgj)):
+        out = tmp_path / "out.png"
+        r = subprocess.run([sys.executable, "-m", "device.cli", "relight", str(tmp_path / "spot.json"), "--method", "sg",
+                            "--lights", src, "--out", str(out), "--move", "spot=0.1,0,0"],
+                           capture_output=True, text=True, env=env, timeout=300, cwd=Path(__file__).parents[1])
+        assert r.returncode == 0, r.stderr
+        img = cv2.imread(str(out))
+        assert img.shape == (72, 96, 3)
+        assert img.mean() > 5
+    assert not (tmp_path / "cache").exists()
+    r = subprocess.run([sys.executable, "-m", "device.cli", "relight", str(tmp_path / "spot.json"), "--method", "sg",
+                        "--lights", str(sgj), "--out", str(tmp_path / "x.png"), "--voxels", "100"],
+                       capture_output=True, text=True, env=env, timeout=300, cwd=Path(__file__).parents[1])
+    assert r.returncode == 2
+    assert "voxels" in r.stderr
