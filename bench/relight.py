@@ -1,4 +1,6 @@
-"""``lightprobe bench relight [--quick]``: cut relighting against a brute-force reference.
+"""``lightprobe bench relight [--quick]``: cut relighting against a brute-force reference, then the SG
+method (``bench.relight_sg``) on the same scenes and ``relight_pareto.png``, both methods' error
+against frame time.
 
 Scenes: ``../shared/data/meshes/spot.obj`` on a ground plane.
 * A (accuracy): spot static, ground 25 x 25 vertices (3,555 vertices). For each tau: SVC precompute
@@ -312,6 +314,12 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
         "bytes": speed["bytes"],
     }
     result = {"summary": summary, "accuracy": acc, "speed": speed, "compactness_deg_per_level": comp}
+    from bench import relight_sg
+
+    sg = relight_sg.run(out_dir, quick)         # side by side: the SG method, no precompute
+    summary["sg"] = sg["summary"]
+    result["sg"] = sg
     (out_dir / "relight.json").write_text(json.dumps(result, indent=1))
     _plots(out_dir, acc, speed)
+    relight_sg.pareto_plot(out_dir, sg, result)
     return result

@@ -53,6 +53,8 @@ from hostlink.relight.sgkernels import (
     LAM_COS,
     MU_COS,
     cone_frame,
+    pyramid_levels,
+    sg_matrix,
     shade_points,
     trace_cones,
     voxelize,
@@ -63,20 +65,29 @@ __all__ = ["SGRelighter", "zonal_cosine"]
 RING_TILT = math.radians(60.0)
 CONE_HALF = math.radians(30.0)
 LAM_CONE = math.log(2.0) / (1.0 - math.cos(CONE_HALF))          # paper eq. 5-6 inverted
-RADIANCE_GRID = 32         # rows of the residual radiance table (ray weights)
-DIFFUSE_GRID = 24          # rows of the diffuse tables (smooth kernels: 7.5 deg cells)
+RADIANCE_GRID = 17         # cube-face side of the residual radiance table (ray weights)
+DIFFUSE_GRID = 13          # cube-face side of the diffuse tables (smooth kernels: ~7 deg texels)
 ZONAL_SAMPLES = 1025
 RAYS_PER_CONE = 16
 RAYS_PER_PEAK = 32
+THIN_PEAK_VOXELS = 2.0     # peak cones narrower than this across the grid are shadow rays
 
 
 # ---- kernels over the sphere -------------------------------------------------------------------
-def _grid_dirs(H: int) -> np.ndarray:
-    th = np.arange(H) * np.pi / (H - 1)          # rows on both poles: exact where normals cluster
-    ph = (np.arange(2 * H) + 0.5) * np.pi / H
-    st, ct = np.sin(th)[:, None], np.cos(th)[:, None]
-    d = np.stack([st * np.cos(ph)[None], np.broadcast_to(ct, (H, 2 * H)), st * np.sin(ph)[None]], -1)
-    return d.reshape(-1, 3)
+def _grid_dirs(N: int) -> np.ndarray:
+    """(6 N N, 3) texel directions of a cube map (layout of :mod:`hostlink.relight.sgkernels`):
+    face ``f`` on axis ``f // 2`` (sign + for even f), texel ``[i, j]`` at ``u_j, v_i`` on the next
+    two axes; N odd puts a texel on each axis (normals cluster there: up, the walls)."""
+    u = -1 + (2 * np.arange(N) + 1) / N
+    V, U = np.meshgrid(u, u, indexing="ij")
+    out = np.empty((6, N, N, 3))
+    for f in range(6):
+        a = f // 2
+        out[f, ..., a] = 1.0 if f % 2 == 0 else -1.0
+        out[f, ..., (a + 1) % 3] = U
+        out[f, ..., (a + 2) % 3] = V
+    out /= np.linalg.norm(out, axis=-1, keepdims=True)
+    return out.reshape(-1, 3)
 
 
 def zonal_cosine(lam: float, samples: int = ZONAL_SAMPLES) -> np.ndarray:
@@ -100,64 +111,46 @@ def zonal_cosine(lam: float, samples: int = ZONAL_SAMPLES) -> np.ndarray:
     return np.asarray(g @ wu)
 
 
-def _sg_dot(lam_k: float, a: np.ndarray, lam: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``integral exp(lam_k (a . w - 1)) exp(lam (p . w - 1)) dw`` for table directions ``a``
-    (D, 3) and lobes (M,): (D, M), overflow-free."""
-    r = np.sqrt(np.maximum(lam_k ** 2 + lam[None] ** 2 + 2 * lam_k * lam[None] * (a @ p.T), 0.0))
-    s = lam_k + lam[None]
-    safe = np.where(r > 1e-9, r, 1.0)
-    return np.where(r > 1e-9, 2 * np.pi * (np.exp(r - s) - np.exp(-r - s)) / safe, 4 * np.pi * np.exp(-s))
-
-
 def _table_lookup(tab: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of an (H, 2H) direction table (the layout of :mod:`hostlink.relight.sgkernels`)."""
-    H = tab.shape[0]
-    th = np.arccos(np.clip(d[:, 1], -1, 1))
-    ph = np.mod(np.arctan2(d[:, 2], d[:, 0]), 2 * np.pi)
-    fi, fj = th * (H - 1) / np.pi, ph * H / np.pi - 0.5
-    i0, j0 = np.floor(fi).astype(np.int64), np.floor(fj).astype(np.int64)
-    wi, wj = fi - i0, fj - j0
-    i1, i0 = np.clip(i0 + 1, 0, H - 1), np.clip(i0, 0, H - 1)
-    j1, j0 = (j0 + 1) % (2 * H), j0 % (2 * H)
-    return ((1 - wi) * ((1 - wj) * tab[i0, j0] + wj * tab[i0, j1]) + wi * ((1 - wj) * tab[i1, j0] + wj * tab[i1, j1]))
+    """Bilinear lookup of a (6, N, N) cube-map table at unit directions ``d`` (n, 3)."""
+    N = tab.shape[1]
+    a = np.argmax(np.abs(d), axis=1)
+    m = np.abs(d[np.arange(len(d)), a])
+    f = 2 * a + (d[np.arange(len(d)), a] < 0)
+    u = d[np.arange(len(d)), (a + 1) % 3] / m
+    v = d[np.arange(len(d)), (a + 2) % 3] / m
+    fj = np.clip((u + 1) * 0.5 * N - 0.5, 0, N - 1)
+    fi = np.clip((v + 1) * 0.5 * N - 0.5, 0, N - 1)
+    j0 = np.minimum(fj.astype(np.int64), N - 2)
+    i0 = np.minimum(fi.astype(np.int64), N - 2)
+    wj, wi = fj - j0, fi - i0
+    return ((1 - wi) * ((1 - wj) * tab[f, i0, j0] + wj * tab[f, i0, j0 + 1])
+            + wi * ((1 - wj) * tab[f, i0 + 1, j0] + wj * tab[f, i0 + 1, j0 + 1]))
 
 
 def anisotropic_pyramid(occ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Three occupancy mip pyramids of an (R, R, R) [z, y, x] grid, one per axis: level l + 1 of
     the axis-``k`` pyramid combines each pair of children along axis k as one occluder after the
-    other (``1 - (1 - a)(1 - b)``) and averages across the other two axes, so a cell holds the
-    probability that a ray crossing it along k is blocked (a floor stays opaque to rays through
+    other (``1 - (1 - a)(1 - b)``) and averages across the other two axes, so a cell holds about
+    the probability that a ray crossing it along k is blocked (a floor stays opaque to rays through
     it at every level, and thin to rays along it). Returned flat, (3, total) float32, with the
-    level offsets."""
-    levels: list[list[np.ndarray]] = [[occ, occ, occ]]
-    while levels[-1][0].shape[0] > 1:
-        nxt = []
-        for k, a in enumerate(levels[-1]):   # k = 0: x (array axis 2), 1: y (axis 1), 2: z (axis 0)
-            r = a.shape[0] // 2
-            b = a.reshape(r, 2, r, 2, r, 2)
-            ax = {0: 5, 1: 3, 2: 1}[k]
-            lo, hi = np.take(b, 0, axis=ax), np.take(b, 1, axis=ax)
-            over = 1 - (1 - lo) * (1 - hi)
-            nxt.append(over.mean(axis=_other(ax)))
-        levels.append(nxt)
-    offs = np.concatenate([[0], np.cumsum([lv[0].size for lv in levels])]).astype(np.int64)
-    flat = np.stack([np.concatenate([lv[k].ravel() for lv in levels]) for k in range(3)]).astype(np.float32)
+    level offsets (:func:`~hostlink.relight.sgkernels.pyramid_levels` fills them)."""
+    R = occ.shape[0]
+    sizes = [(R >> lv) ** 3 for lv in range(R.bit_length())]
+    offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    flat = np.empty((3, int(offs[-1])), np.float32)
+    flat[:, :sizes[0]] = np.asarray(occ, np.float32).reshape(1, -1)
+    pyramid_levels(flat, offs, R)
     return flat, offs
-
-
-def _other(ax: int) -> tuple[int, int]:
-    """After removing pair axis ``ax`` from the (r, 2, r, 2, r, 2) view, the two remaining pair axes."""
-    rest = [x for x in (1, 3, 5) if x != ax]
-    return tuple(x - (1 if x > ax else 0) for x in rest)  # type: ignore[return-value]
 
 
 @dataclass
 class _Tables:
-    E: np.ndarray
+    E: np.ndarray           # (6, N, N, 3) cube maps
     Wc: np.ndarray
     Wr: np.ndarray
-    G: np.ndarray           # (slots, H, 2H, 3)
-    L: np.ndarray | None = None   # (H, 2H) the residual's luminance (ray visibility weights)
+    G: np.ndarray           # (slots, 6, N, N, 3)
+    L: np.ndarray | None = None   # (6, N, N) the residual's luminance (ray visibility weights)
 
 
 class _TableCache:
@@ -188,16 +181,12 @@ class _TableCache:
         m = self._mats.get(mk)
         if m is None:
             d = _grid_dirs(H)
-            if kind == "radiance":
-                m = np.exp(lam[None] * (d @ axes.T - 1.0)).astype(np.float32)
-            elif kind == "cos":
-                m = np.zeros((len(d), len(lam)), np.float32)
-                tk = np.linspace(-1, 1, ZONAL_SAMPLES)
-                for u in np.unique(lam):
-                    sel = np.flatnonzero(lam == u)
-                    m[:, sel] = np.interp(d @ axes[sel].T, tk, self.zonal(float(u)))
-            else:
-                m = _sg_dot(lam_k, d, lam, axes).astype(np.float32)
+            m = np.empty((len(d), len(lam)), np.float32)
+            uniq, slot = np.unique(lam, return_inverse=True)
+            zon = np.stack([self.zonal(float(u)) for u in uniq]) if kind == "cos" else np.zeros((1, ZONAL_SAMPLES))
+            sg_matrix({"sg": 0, "cos": 1, "radiance": 2}[kind], float(lam_k), d, np.ascontiguousarray(axes, np.float64),
+                      np.ascontiguousarray(lam, np.float64), zon,
+                      slot.astype(np.int64) if kind == "cos" else np.zeros(len(lam), np.int64), m)
             self._mats[mk] = m
         return m
 
@@ -263,6 +252,7 @@ class SGRelighter:
         self._pyr: tuple[np.ndarray, np.ndarray] | None = None
         self._embree: Any = None
         self._geometry = 0          # bumped by every deformation or move
+        self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
         self.stats: dict[str, float] = {}
 
     # ---- lighting ----------------------------------------------------------------------------
@@ -287,23 +277,26 @@ class SGRelighter:
         res = ~peak
         ax, lam, amp = sg.axes[res], sg.sharpness[res], sg.amplitude[res]
         c = self._cache
-        Hg = [self._gloss_grid(e) for e in self._gloss]
-        G = max(Hg)
+        Ng = [self._gloss_grid(e) for e in self._gloss]
+        G = max(Ng)
+        D = DIFFUSE_GRID
+        a32 = amp.astype(np.float32)
         tabs = _Tables(
-            (c.matrix(ax, lam, "cos", 0.0, DIFFUSE_GRID) @ amp.astype(np.float32)).reshape(DIFFUSE_GRID, -1, 3),
-            (c.matrix(ax, lam, "sg", self._lam_center, DIFFUSE_GRID) @ amp.astype(np.float32)).reshape(DIFFUSE_GRID, -1, 3),
-            (c.matrix(ax, lam, "sg", self._lam_ring, DIFFUSE_GRID) @ amp.astype(np.float32)).reshape(DIFFUSE_GRID, -1, 3),
-            np.zeros((len(self._gloss), G, 2 * G, 3), np.float32))
-        for s, (e, h) in enumerate(zip(self._gloss, Hg, strict=True)):
-            t = (c.matrix(ax, lam, "sg", e, h) @ amp.astype(np.float32)).reshape(h, 2 * h, 3)
-            if h != G:
+            (c.matrix(ax, lam, "cos", 0.0, D) @ a32).reshape(6, D, D, 3),
+            (c.matrix(ax, lam, "sg", self._lam_center, D) @ a32).reshape(6, D, D, 3),
+            (c.matrix(ax, lam, "sg", self._lam_ring, D) @ a32).reshape(6, D, D, 3),
+            np.zeros((len(self._gloss), 6, G, G, 3), np.float32))
+        for s, (e, n) in enumerate(zip(self._gloss, Ng, strict=True)):
+            t = (c.matrix(ax, lam, "sg", e, n) @ a32).reshape(6, n, n, 3)
+            if n != G:
                 import cv2
 
-                t = cv2.resize(t, (2 * G, G), interpolation=cv2.INTER_LINEAR)
+                t = np.stack([cv2.resize(t[f], (G, G), interpolation=cv2.INTER_LINEAR) for f in range(6)])
             tabs.G[s] = t
         if self.visibility == "rays":  # the residual's radiance, to weight each cone's rays by
             lum = amp @ np.array([0.2126, 0.7152, 0.0722])
-            tabs.L = (c.matrix(ax, lam, "radiance", 0.0, RADIANCE_GRID) @ lum.astype(np.float32)).reshape(RADIANCE_GRID, -1)
+            R = RADIANCE_GRID
+            tabs.L = (c.matrix(ax, lam, "radiance", 0.0, R) @ lum.astype(np.float32)).reshape(6, R, R)
         self._tables = tabs
         pl = sg.sharpness[peak]
         pF = np.stack([c.zonal(float(x)) for x in pl]) if len(pl) else np.zeros((0, ZONAL_SAMPLES))
@@ -312,7 +305,7 @@ class SGRelighter:
 
     @staticmethod
     def _gloss_grid(e: float) -> int:
-        return 32 if e <= 32 else 64 if e <= 128 else 128
+        return 17 if e <= 32 else 33 if e <= 128 else 65   # cube-face texels: ~5.3, 2.7, 1.4 deg
 
     @property
     def _lam_center(self) -> float:
@@ -378,8 +371,8 @@ class SGRelighter:
             tot = np.zeros(R ** 3, np.uint8)
             for o in self._occ:
                 if o is not None:
-                    np.maximum(tot, o, out=tot)
-            self._pyr = anisotropic_pyramid(tot.reshape(R, R, R).astype(np.float32))
+                    np.bitwise_or(tot, o, out=tot)
+            self._pyr = anisotropic_pyramid(tot.reshape(R, R, R))
         return self._pyr
 
     def _cone_dirs(self, pos: np.ndarray, nrm: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -398,24 +391,65 @@ class SGRelighter:
         tan[:, :7] = math.tan(CONE_HALF)
         e = self.mats[self._matid_rows, 7]
         tan[:, 7] = np.tan(np.arccos(np.clip(1 - math.log(2) / np.maximum(e, 1.0), -1, 1)))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ca = np.where(plam >= math.log(2) / 2, 1 + math.log(0.5) / np.maximum(plam, 1e-9), -1.0)
-        tan[:, 8:] = np.tan(np.minimum(np.arccos(np.clip(ca, -1, 1)), math.radians(89)))[None]
+        tan[:, 8:] = self._peak_half_tan()[None]
         return dirs, tan
 
     _matid_rows: np.ndarray = np.zeros(0, np.int64)
 
-    def _ray_visibility(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray) -> np.ndarray:
-        from hostlink.relight.precompute import build_embree, occluded, scene_eps
+    def _trace(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray, first: int = 0) -> np.ndarray:
+        """Transmittance of the cones ``dirs[:, j]`` (cone ``first + j`` of the layout: 0-6
+        diffuse, 7 reflection, 8+ peaks) by the instance's visibility method."""
+        if self.visibility == "voxels":
+            pyr, offs = self._pyramid()
+            out = np.empty(tan.shape)
+            # a peak cone under THIN_PEAK_VOXELS wide across the whole grid (the sun: 0.5 deg) is a
+            # ray: one Embree shadow ray along its axis, an exact hard shadow, instead of a
+            # voxel-wide blur marched at half-voxel steps
+            thin = np.zeros(tan.shape[1], bool)
+            if len(tan):
+                thin = (first + np.arange(tan.shape[1]) >= 8) & (2 * self.R * tan.max(axis=0) < THIN_PEAK_VOXELS)
+            wide = np.flatnonzero(~thin)
+            if len(wide):
+                sub = np.empty((len(pos), len(wide)))
+                trace_cones(np.ascontiguousarray(pos), np.ascontiguousarray(nrm), np.ascontiguousarray(dirs[:, wide]),
+                            np.ascontiguousarray(tan[:, wide]), pyr, offs, self.R, self.origin, self.vox,
+                            self.cone_start, self.cone_lift, self.cone_gain, self.cone_footprint, sub)
+                out[:, wide] = sub
+            for j in np.flatnonzero(thin):
+                out[:, j] = self._shadow_rays(pos, nrm, dirs[:, j])
+            return out
+        return self._ray_visibility(pos, nrm, dirs, tan, first)
+
+    def _embree_scene(self) -> Any:
+        from hostlink.relight.precompute import build_embree
 
         if self._embree is None or self._embree[1] != self._geometry:
             self._embree = (build_embree([(self.vertices, self.faces)]), self._geometry)
-        es = self._embree[0]
+        return self._embree[0]
+
+    def _shadow_rays(self, pos: np.ndarray, nrm: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """1 where the ray from each point along ``d`` escapes (and ``d`` is above its horizon), else 0."""
+        from hostlink.relight.precompute import occluded, scene_eps
+
+        d = np.ascontiguousarray(np.broadcast_to(d, pos.shape))
+        up = np.einsum("ij,ij->i", d, nrm) > 0
+        out = np.zeros(len(pos))
+        rows = np.flatnonzero(up)
+        eps = scene_eps(self.scene)
+        out[rows] = ~occluded(self._embree_scene(), pos[rows] + eps * nrm[rows], d[rows])
+        return out
+
+    def _ray_visibility(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray,
+                        first: int = 0) -> np.ndarray:
+        from hostlink.relight.precompute import occluded, scene_eps
+
+        es = self._embree_scene()
         eps = scene_eps(self.scene)
         n, k = tan.shape
         out = np.empty((n, k))
         plam = self._peaks[1]
-        for c in range(k):
+        for j in range(k):
+            c = first + j
             peak = c >= 8
             m = RAYS_PER_PEAK if peak else RAYS_PER_CONE
             g = (np.arange(m) + 0.5) / m
@@ -424,11 +458,11 @@ class SGRelighter:
                 lam = float(plam[c - 8])
                 ct = 1 + np.log(g + (1 - g) * math.exp(-2 * min(lam, 700.0))) / max(lam, 1e-9)  # vMF inverse CDF
             else:
-                ca = 1 / np.sqrt(1 + tan[:, c] ** 2)
+                ca = 1 / np.sqrt(1 + tan[:, j] ** 2)
                 ct = 1 - g[None] * (1 - ca[:, None])  # uniform in the cone
             ct = np.clip(ct, -1, 1)
             st = np.sqrt(1 - ct * ct)
-            ax = dirs[:, c]
+            ax = dirs[:, j]
             t1 = np.cross(ax, np.where(np.abs(ax[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
             t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
             t2 = np.cross(ax, t1)
@@ -446,10 +480,10 @@ class SGRelighter:
                 w = w * np.maximum(_table_lookup(self._tables.L, d.reshape(-1, 3)).reshape(n, m), 0.0)
             if peak or c < 7:   # the light the cone's rays carry: cosine x residual radiance
                 tot = w.sum(axis=1)
-                out[:, c] = np.where(tot > 0, (w * ~occ).sum(axis=1) / np.where(tot > 0, tot, 1),
+                out[:, j] = np.where(tot > 0, (w * ~occ).sum(axis=1) / np.where(tot > 0, tot, 1),
                                      (~occ).mean(axis=1))
             else:
-                out[:, c] = (~occ).mean(axis=1)
+                out[:, j] = (~occ).mean(axis=1)
         return out
 
     # ---- shading -----------------------------------------------------------------------------
@@ -476,15 +510,10 @@ class SGRelighter:
 
     def _visibility_rows(self, matid: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
                          wo: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(cones (n, 7, 3), vis7 (n, 7), vspec (n,), vpeak (n, P)) of points."""
         self._matid_rows = np.asarray(matid, np.int64)
         dirs, tan = self._cone_dirs(pos, nrm, wo)
-        if self.visibility == "voxels":
-            pyr, offs = self._pyramid()
-            out = np.empty(tan.shape)
-            trace_cones(pos, nrm, dirs, tan, pyr, offs, self.R, self.origin, self.vox,
-                        self.cone_start, self.cone_lift, self.cone_gain, self.cone_footprint, out)
-        else:
-            out = self._ray_visibility(pos, nrm, dirs, tan)
+        out = self._trace(pos, nrm, dirs, tan)
         return dirs[:, :7].copy(), out[:, :7].copy(), out[:, 7].copy(), out[:, 8:].copy()
 
     def vertex_radiance(self, eye: np.ndarray, vidx: np.ndarray | None = None) -> np.ndarray:
@@ -492,24 +521,83 @@ class SGRelighter:
         vidx = np.arange(len(self.vertices)) if vidx is None else np.asarray(vidx, np.int64)
         return self.shade(self.vertices[vidx], self._normals[vidx], self.matid[vidx], eye)
 
+    def _peak_half_tan(self) -> np.ndarray:
+        """tan of each peak cone's half-angle (paper eq. 5-6; 89 deg for lobes too broad for it)."""
+        plam = self._peaks[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ca = np.where(plam >= math.log(2) / 2, 1 + math.log(0.5) / np.maximum(plam, 1e-9), -1.0)
+        return np.asarray(np.tan(np.minimum(np.arccos(np.clip(ca, -1, 1)), math.radians(89))))
+
+    def _peak_visibility(self, pos: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, float]:
+        """(n, P) visibility of each peak from each point, and the number of cones traced: a
+        peak whose cone lies wholly below a point's horizon is not traced there (it lights
+        nothing: 0)."""
+        pax = self._peaks[0]
+        n, P = len(pos), len(pax)
+        out = np.zeros((n, P))
+        if P == 0:
+            return out, 0.0
+        tan = self._peak_half_tan()
+        sin_half = tan / np.sqrt(1 + tan * tan)
+        above = nrm @ pax.T > -sin_half[None]
+        rows = np.flatnonzero(above.any(axis=1))
+        dirs = np.broadcast_to(pax[None], (len(rows), P, 3))
+        if len(rows):
+            out[rows] = self._trace(pos[rows], nrm[rows], dirs, np.broadcast_to(tan[None], (len(rows), P)), first=8)
+        out[~above] = 0.0
+        return out, float(len(rows) * P)
+
     def render(self, cam: Camera | None = None, background: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
-        """Image (H, W, 3) float32, shaded per pixel (position and normal interpolated from the
-        triangle's vertices; cones traced from each covered pixel)."""
-        from hostlink.relight.raster import lookup_equirect, rasterize, view_rays
+        """Image (H, W, 3) float32 linear, shaded per pixel: position, normal and reflection per
+        pixel, the peaks' cones traced from every covered pixel (their shadows are the sharp
+        ones); the wide cones (7 diffuse, 30 deg, and the reflection cone) from the vertices of
+        the visible triangles, interpolated (their visibility is smooth across a triangle).
+
+        Cached between calls: the raster and the wide cones until the geometry or the camera
+        changes, the peaks' cones until a peak's axis or sharpness changes; a light change whose
+        peaks stay put costs the direction tables and the per-pixel shading only."""
+        from hostlink.relight.raster import lookup_equirect, rasterize, view_rays, visible_vertices
 
         cam = cam or self.scene.camera
-        ras = rasterize(cam, self.vertices, self.faces, rays=False)
-        cov = ras.tri >= 0
-        tri = ras.tri[cov]
-        b = ras.bary[cov].astype(np.float64)
-        f = self.faces[tri]
-        pos = np.einsum("pk,pkj->pj", b, self.vertices[f])
-        nrm = np.einsum("pk,pkj->pj", b, self._normals[f])
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-        rad = self.shade(pos, nrm, self.matid[f[:, 0]], np.asarray(cam.position, np.float64))
-        img = np.zeros((*ras.tri.shape, 3), np.float32)
-        img[cov] = rad
+        key = (self._geometry, tuple(np.asarray(cam.position, float)), tuple(np.asarray(cam.look_at, float)),
+               tuple(np.asarray(cam.up, float)), float(cam.fov_deg), int(cam.width), int(cam.height))
+        eye = np.asarray(cam.position, np.float64)
+        f = self._frame
+        traced = {"wide_cones": 0.0, "peak_cones": 0.0}
+        if f is None or f["key"] != key:
+            ras = rasterize(cam, self.vertices, self.faces, rays=False)
+            cov = ras.tri >= 0
+            tri = ras.tri[cov]
+            b = ras.bary[cov].astype(np.float64)
+            fv = self.faces[tri]
+            pos = np.einsum("pk,pkj->pj", b, self.vertices[fv])
+            nrm = np.einsum("pk,pkj->pj", b, self._normals[fv])
+            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+            matid = self.matid[fv[:, 0]]
+            vis_v = visible_vertices(ras.tri, self.faces, len(self.vertices))
+            vp, vn = self.vertices[vis_v], self._normals[vis_v]
+            wo = eye - vp
+            wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
+            self._matid_rows = self.matid[vis_v]
+            dirs, tan = self._cone_dirs(vp, vn, wo)
+            wide = np.zeros((len(self.vertices), 8))
+            wide[vis_v] = self._trace(vp, vn, dirs[:, :8], tan[:, :8])
+            traced["wide_cones"] = float(8 * len(vis_v))
+            vw = np.einsum("pk,pkj->pj", b, wide[fv])
+            cones = np.zeros((len(pos), 7, 3))
+            cone_frame(nrm, math.cos(RING_TILT), math.sin(RING_TILT), cones)
+            f = self._frame = {"key": key, "cov": cov, "pos": pos, "nrm": nrm, "matid": matid, "cones": cones,
+                               "vis7": np.ascontiguousarray(vw[:, :7]), "vspec": np.ascontiguousarray(vw[:, 7]),
+                               "peaks": None, "vpeak": None}
+        pax, plam = self._peaks[0], self._peaks[1]
+        pkey = (pax.tobytes(), plam.tobytes())
+        if f["peaks"] != pkey:
+            f["vpeak"], traced["peak_cones"] = self._peak_visibility(f["pos"], f["nrm"])
+            f["peaks"] = pkey
+        rad = self.shade(f["pos"], f["nrm"], f["matid"], eye, (f["cones"], f["vis7"], f["vspec"], f["vpeak"]))
+        img = np.zeros((*f["cov"].shape, 3), np.float32)
+        img[f["cov"]] = rad
         if background is not None:
             rays = view_rays(cam)
-            img[~cov] = lookup_equirect(background, rays[~cov])
-        return img, {"pixels": float(cov.sum())}
+            img[~f["cov"]] = lookup_equirect(background, rays[~f["cov"]])
+        return img, {"pixels": float(f["cov"].sum()), **traced}

@@ -1,10 +1,9 @@
 """numba kernels of the SG relighting (:mod:`hostlink.relight.sg`): direction-table lookups,
 per-point shading from SG tables and peaks, voxelisation and voxel cone tracing.
 
-Conventions. Direction tables are (H, 2H, 3) grids over the sphere: row ``i`` at polar angle
-``theta = i pi / (H - 1)`` from +y (rows 0 and H - 1 on the poles), column ``j`` at azimuth ``phi = (j + 0.5) pi / H`` with
-``d = (sin theta cos phi, cos theta, sin theta sin phi)``; lookups are bilinear (clamped in
-theta, periodic in phi). Zonal tables are (K,) samples of a function of ``t = a . p`` on
+Conventions. Direction tables are (6, N, N, 3) cube maps: face ``f`` on axis ``f // 2`` (+ for even
+``f``), texel ``[i, j]`` at ``(u_j, v_i) = (-1 + (2 j + 1) / N, ...)`` on the next two axes
+(``(a + 1) % 3``, ``(a + 2) % 3``), looked up bilinearly within the face (clamped at its edges): no trigonometry per lookup. Zonal tables are (K,) samples of a function of ``t = a . p`` on
 ``t_k = -1 + 2 k / (K - 1)``, looked up linearly.
 
 A voxel pyramid is one flat float32 array: level ``l`` holds ``(R >> l)^3`` occupancies (x
@@ -25,27 +24,33 @@ MU_COS = 1.17
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _dir_lookup(tab: np.ndarray, x: float, y: float, z: float, ch: int) -> float:
-    H = tab.shape[0]
-    W = tab.shape[1]
-    th = math.acos(min(1.0, max(-1.0, y)))
-    ph = math.atan2(z, x)
-    if ph < 0:
-        ph += 2 * math.pi
-    fi = th * (H - 1) / math.pi
-    fj = ph * H / math.pi - 0.5
-    i0 = int(np.floor(fi))
-    j0 = int(np.floor(fj))
-    wi = fi - i0
+def _dir_lookup3(tab: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """Bilinear lookup of the three channels of a (6, N, N, 3) cube-map table at unit
+    ``(x, y, z)`` (no trigonometry: the major axis picks the face)."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        f = 0 if x > 0 else 1
+        m, pu, pv = ax, y, z
+    elif ay >= az:
+        f = 2 if y > 0 else 3
+        m, pu, pv = ay, z, x
+    else:
+        f = 4 if z > 0 else 5
+        m, pu, pv = az, x, y
+    N = tab.shape[1]
+    fj = min(max((pu / m + 1) * 0.5 * N - 0.5, 0.0), N - 1.0)
+    fi = min(max((pv / m + 1) * 0.5 * N - 0.5, 0.0), N - 1.0)
+    j0 = min(int(fj), N - 2)
+    i0 = min(int(fi), N - 2)
     wj = fj - j0
-    i1 = min(i0 + 1, H - 1)
-    i0 = max(i0, 0)
-    if i1 < 0:
-        i1 = 0
-    j0m = j0 % W
-    j1m = (j0 + 1) % W
-    return ((1 - wi) * ((1 - wj) * tab[i0, j0m, ch] + wj * tab[i0, j1m, ch])
-            + wi * ((1 - wj) * tab[i1, j0m, ch] + wj * tab[i1, j1m, ch]))
+    wi = fi - i0
+    a = (1 - wi) * (1 - wj)
+    b = (1 - wi) * wj
+    c = wi * (1 - wj)
+    d = wi * wj
+    return (a * tab[f, i0, j0, 0] + b * tab[f, i0, j0 + 1, 0] + c * tab[f, i0 + 1, j0, 0] + d * tab[f, i0 + 1, j0 + 1, 0],
+            a * tab[f, i0, j0, 1] + b * tab[f, i0, j0 + 1, 1] + c * tab[f, i0 + 1, j0, 1] + d * tab[f, i0 + 1, j0 + 1, 1],
+            a * tab[f, i0, j0, 2] + b * tab[f, i0, j0 + 1, 2] + c * tab[f, i0 + 1, j0, 2] + d * tab[f, i0 + 1, j0 + 1, 2])
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -98,41 +103,46 @@ def shade_points(nrm: np.ndarray, wo: np.ndarray, matid: np.ndarray, mats: np.nd
     amplitudes and ``pF[p]`` (zonal clamped-cosine table of lobe p). Visibility: ``vis7`` (N, 7)
     cone transmittances, ``vspec`` (N,) the reflection cone's, ``vpeak`` (N, P) each peak's."""
     P = paxis.shape[0]
-    for i in prange(nrm.shape[0]):
+    for i in prange(nrm.shape[0]):   # scalars only in the loop body: no per-point allocation
         nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
         m = matid[i]
         typ = int(mats[m, 0])
         # the residual's visibility: the cones' transmittances weighted by the light they carry
-        v = np.zeros(3)
-        wsum = np.zeros(3)
-        for c in range(7):
-            ax, ay, az = cones[i, c, 0], cones[i, c, 1], cones[i, c, 2]
-            rx = lam_cos * nx + lam_cone * ax
-            ry = lam_cos * ny + lam_cone * ay
-            rz = lam_cos * nz + lam_cone * az
-            rl = math.sqrt(rx * rx + ry * ry + rz * rz)
-            for ch in range(3):
-                if c == 0:
-                    w = kc * _dir_lookup(tabWc, rx / rl, ry / rl, rz / rl, ch)
-                else:
-                    w = kr * _dir_lookup(tabWr, rx / rl, ry / rl, rz / rl, ch)
-                w = max(w, 0.0)
-                v[ch] += w * vis7[i, c]
-                wsum[ch] += w
+        v0 = v1 = v2 = 0.0
+        s0 = s1 = s2 = 0.0
         mean7 = 0.0
         for c in range(7):
-            mean7 += vis7[i, c] / 7.0
-        diff = np.zeros(3)
-        for ch in range(3):
-            vres = v[ch] / wsum[ch] if wsum[ch] > 1e-30 else mean7
-            diff[ch] = _dir_lookup(tabE, nx, ny, nz, ch) * vres  # may be < 0: the peaks' residual
+            rx = lam_cos * nx + lam_cone * cones[i, c, 0]
+            ry = lam_cos * ny + lam_cone * cones[i, c, 1]
+            rz = lam_cos * nz + lam_cone * cones[i, c, 2]
+            rl = math.sqrt(rx * rx + ry * ry + rz * rz)
+            if c == 0:
+                w0, w1, w2 = _dir_lookup3(tabWc, rx / rl, ry / rl, rz / rl)
+                k = kc
+            else:
+                w0, w1, w2 = _dir_lookup3(tabWr, rx / rl, ry / rl, rz / rl)
+                k = kr
+            w0, w1, w2 = max(k * w0, 0.0), max(k * w1, 0.0), max(k * w2, 0.0)
+            vc = vis7[i, c]
+            v0 += w0 * vc
+            v1 += w1 * vc
+            v2 += w2 * vc
+            s0 += w0
+            s1 += w1
+            s2 += w2
+            mean7 += vc / 7.0
+        e0, e1, e2 = _dir_lookup3(tabE, nx, ny, nz)  # may be < 0: the residual about a peak
+        d0 = e0 * (v0 / s0 if s0 > 1e-30 else mean7)
+        d1 = e1 * (v1 / s1 if s1 > 1e-30 else mean7)
+        d2 = e2 * (v2 / s2 if s2 > 1e-30 else mean7)
         for p in range(P):
-            cp = nx * paxis[p, 0] + ny * paxis[p, 1] + nz * paxis[p, 2]
-            f = _zonal(pF[p], cp) * vpeak[i, p]
-            for ch in range(3):
-                diff[ch] += pamp[p, ch] * f
-        for ch in range(3):
-            out[i, ch] = mats[m, 1 + ch] / math.pi * max(diff[ch], 0.0)
+            f = _zonal(pF[p], nx * paxis[p, 0] + ny * paxis[p, 1] + nz * paxis[p, 2]) * vpeak[i, p]
+            d0 += pamp[p, 0] * f
+            d1 += pamp[p, 1] * f
+            d2 += pamp[p, 2] * f
+        out[i, 0] = mats[m, 1] / math.pi * max(d0, 0.0)
+        out[i, 1] = mats[m, 2] / math.pi * max(d1, 0.0)
+        out[i, 2] = mats[m, 3] / math.pi * max(d2, 0.0)
         if typ != 1:
             continue
         # Phong: ks (e + 2) / (2 pi) cos^e(r_o . w) ~ an SG of sharpness e about the reflection
@@ -141,12 +151,9 @@ def shade_points(nrm: np.ndarray, wo: np.ndarray, matid: np.ndarray, mats: np.nd
         ox = 2 * cn * nx - wo[i, 0]
         oy = 2 * cn * ny - wo[i, 1]
         oz = 2 * cn * nz - wo[i, 2]
-        cr = max(nx * ox + ny * oy + nz * oz, 0.0)
-        norm = (e + 2) * 0.5 / math.pi
-        spec = np.zeros(3)
-        s = gloss_slot[m]
-        for ch in range(3):
-            spec[ch] = cr * _dir_lookup(tabG[s], ox, oy, oz, ch) * vspec[i]
+        cr = max(nx * ox + ny * oy + nz * oz, 0.0) * vspec[i]
+        g0, g1, g2 = _dir_lookup3(tabG[gloss_slot[m]], ox, oy, oz)
+        g0, g1, g2 = cr * g0, cr * g1, cr * g2
         for p in range(P):
             lp = plam[p]
             qx = e * ox + lp * paxis[p, 0]
@@ -156,11 +163,14 @@ def shade_points(nrm: np.ndarray, wo: np.ndarray, matid: np.ndarray, mats: np.nd
             if ql < 1e-9:
                 continue
             dp = 2 * math.pi * (math.exp(ql - e - lp) - math.exp(-ql - e - lp)) / ql
-            cq = max((nx * qx + ny * qy + nz * qz) / ql, 0.0)
-            for ch in range(3):
-                spec[ch] += pamp[p, ch] * dp * cq * vpeak[i, p]
-        for ch in range(3):
-            out[i, ch] += mats[m, 4 + ch] * norm * max(spec[ch], 0.0)
+            f = dp * max((nx * qx + ny * qy + nz * qz) / ql, 0.0) * vpeak[i, p]
+            g0 += pamp[p, 0] * f
+            g1 += pamp[p, 1] * f
+            g2 += pamp[p, 2] * f
+        norm = (e + 2) * 0.5 / math.pi
+        out[i, 0] += mats[m, 4] * norm * max(g0, 0.0)
+        out[i, 1] += mats[m, 5] * norm * max(g1, 0.0)
+        out[i, 2] += mats[m, 6] * norm * max(g2, 0.0)
 
 
 # ---- voxels ------------------------------------------------------------------------------------
@@ -231,7 +241,7 @@ def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: n
     ``k`` along ``dirs[i, k]`` with ``tan(half angle) = tan_half[i, k]``, from ``orig[i]`` lifted
     by ``lift`` voxels along ``nrm[i]``, starting ``start`` voxels out. Each step samples the
     pyramid at the level whose cell is ``footprint`` x the cone's diameter (a cell as wide as the
-    cone reaches back to the surface it starts from) and composites ``1 - (1 - occ)^(gain step / cell)`` front to back. Stops at 99% opacity or the grid's edge."""
+    cone reaches back to the surface it starts from) and composites ``1 - (1 - occ)^(gain step / cell)``, skipping empty space by the level-3 cells front to back. Stops at 99% opacity or the grid's edge."""
     nl = offs.shape[0] - 1
     for i in prange(orig.shape[0]):
         ox = (orig[i, 0] - origin[0]) / vox + lift * nrm[i, 0]
@@ -250,6 +260,13 @@ def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: n
                     break
                 d = max(1.0, 2 * t * th)
                 c = max(1.0, footprint * d)   # the cell sampled: a fraction of the cone's width
+                if c < 4 and nl > 3:   # empty space: nothing in the level-3 (2-) cells about the point
+                    if _sample(pyr[0], offs, R, 3, px, py, pz) == 0.0:
+                        t += 4.0
+                        continue
+                    if c < 2 and _sample(pyr[0], offs, R, 2, px, py, pz) == 0.0:
+                        t += 2.0
+                        continue
                 lv = math.log2(c)
                 if lv >= nl - 1:
                     lv = nl - 1.0
@@ -260,10 +277,74 @@ def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: n
                 for ax in range(3):     # the axis pyramids, blended by the direction's squares
                     wa = dirs[i, k, ax] * dirs[i, k, ax]
                     if wa > 1e-6:
-                        occ += wa * ((1 - w) * _sample(pyr[ax], offs, R, l0, px, py, pz)
-                                     + w * _sample(pyr[ax], offs, R, l1, px, py, pz))
+                        sa = _sample(pyr[ax], offs, R, l0, px, py, pz)
+                        if w > 1e-6 and l1 != l0:
+                            sa = (1 - w) * sa + w * _sample(pyr[ax], offs, R, l1, px, py, pz)
+                        occ += wa * sa
                 step = max(0.5, 0.5 * c)
                 if occ > 0:
                     a += (1 - a) * (1 - (1 - min(occ, 1.0)) ** (gain * step / c))
                 t += step
             out[i, k] = 1 - a
+
+
+# ---- lobe-to-table matrices ----------------------------------------------------------------------
+@njit(cache=True, fastmath=True, parallel=True)
+def sg_matrix(kind: int, lam_k: float, d: np.ndarray, axes: np.ndarray, lam: np.ndarray,
+              zonal: np.ndarray, zslot: np.ndarray, out: np.ndarray) -> None:
+    """``out[i, m]`` (float32): the integral of lobe ``m`` (``axes[m]``, ``lam[m]``, unit amplitude)
+    against the kernel about direction ``d[i]``: ``kind`` 0 the SG of sharpness ``lam_k`` (closed
+    form, paper eq. 4 with two lobes), 1 the clamped cosine (``zonal[zslot[m]]``), 2 the lobe's
+    radiance at ``d[i]``."""
+    for i in prange(d.shape[0]):
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        for m in range(axes.shape[0]):
+            c = dx * axes[m, 0] + dy * axes[m, 1] + dz * axes[m, 2]
+            la = lam[m]
+            if kind == 0:
+                r = math.sqrt(max(lam_k * lam_k + la * la + 2 * lam_k * la * c, 0.0))
+                s = lam_k + la
+                if r > 1e-9:
+                    out[i, m] = 2 * math.pi * (math.exp(r - s) - math.exp(-r - s)) / r
+                else:
+                    out[i, m] = 4 * math.pi * math.exp(-s)
+            elif kind == 1:
+                out[i, m] = _zonal(zonal[zslot[m]], c)
+            else:
+                out[i, m] = math.exp(la * (c - 1.0))
+
+
+@njit(cache=True, fastmath=True, parallel=True)
+def pyramid_levels(pyr: np.ndarray, offs: np.ndarray, R: int) -> None:
+    """Fill levels 1.. of the three axis pyramids ``pyr`` (3, total) from level 0 (see
+    :func:`hostlink.relight.sg.anisotropic_pyramid`): per axis, each pair of children along the
+    axis composited (``1 - (1 - a)(1 - b)``), averaged over the other two axes."""
+    for lv in range(offs.shape[0] - 2):
+        r = R >> lv
+        h = r >> 1
+        o0 = offs[lv]
+        o1 = offs[lv + 1]
+        for z in prange(h):
+            for y in range(h):
+                for x in range(h):
+                    s0 = 0.0
+                    s1 = 0.0
+                    s2 = 0.0
+                    for a in range(2):
+                        for b in range(2):
+                            # axis x (0): pairs along x, for (y, z) = (a, b)
+                            lo = pyr[0, o0 + ((2 * z + b) * r + 2 * y + a) * r + 2 * x]
+                            hi = pyr[0, o0 + ((2 * z + b) * r + 2 * y + a) * r + 2 * x + 1]
+                            s0 += 1 - (1 - lo) * (1 - hi)
+                            # axis y (1): pairs along y, for (x, z) = (a, b)
+                            lo = pyr[1, o0 + ((2 * z + b) * r + 2 * y) * r + 2 * x + a]
+                            hi = pyr[1, o0 + ((2 * z + b) * r + 2 * y + 1) * r + 2 * x + a]
+                            s1 += 1 - (1 - lo) * (1 - hi)
+                            # axis z (2): pairs along z, for (x, y) = (a, b)
+                            lo = pyr[2, o0 + ((2 * z) * r + 2 * y + b) * r + 2 * x + a]
+                            hi = pyr[2, o0 + ((2 * z + 1) * r + 2 * y + b) * r + 2 * x + a]
+                            s2 += 1 - (1 - lo) * (1 - hi)
+                    i = o1 + (z * h + y) * h + x
+                    pyr[0, i] = 0.25 * s0
+                    pyr[1, i] = 0.25 * s1
+                    pyr[2, i] = 0.25 * s2
