@@ -53,7 +53,7 @@ def _nrms(a: np.ndarray, b: np.ndarray) -> float:
 
 def _maps(shared: Path) -> dict[str, np.ndarray]:
     from device.core.imageio import read_hdr_image
-    from device.sampling.peaks import coarse_equirect
+    from device.core.sphere import coarse_equirect
     from sim.scenarios import load_scene
 
     out = {}
@@ -141,9 +141,9 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     # spherical Gaussians (#17): the fit on every map, sphere and probe hemisphere
     from device.core.lightset import LightSet
     from device.core.sg import SGLighting
+    from device.core.sgfit import fit_sg
     from device.core.sphere import equirect_directions, equirect_integral, equirect_row_solid_angle
     from device.sampling.metrics import ErrorReference
-    from device.sampling.sgfit import fit_sg
 
     def sg_lights(sg: SGLighting, h: int = 256) -> LightSet:
         peak = np.array([k == "peak" for k in sg.kinds], bool)

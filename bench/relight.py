@@ -31,28 +31,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-SHARED = ROOT.parent / "shared" / "data"
-MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
-        "dikhololo_night_1k.hdr", "interior_blender.exr"]
-
-
-def _scene_file(d: Path, movable: bool, res: int, width: int = 320, height: int = 240) -> Path:
-    doc = {"version": 1,
-           "materials": {"clay": {"type": "phong", "kd": [0.6, 0.5, 0.4], "ks": [0.2, 0.2, 0.2], "exponent": 20},
-                         "floor": {"type": "lambert", "kd": [0.5, 0.5, 0.5]}},
-           "objects": [{"name": "spot", "mesh": str((SHARED / "meshes" / "spot.obj").resolve()),
-                        "material": "clay", "movable": movable}],
-           "ground": {"y": "auto", "size": 3.0, "resolution": res, "material": "floor"},
-           "camera": {"position": [2.0, 1.2, 2.5], "look_at": [0, -0.2, 0.4], "fov_deg": 40,
-                      "width": width, "height": height}}
-    p = d / f"spot_{'movable' if movable else 'static'}_{res}.json"
-    p.write_text(json.dumps(doc))
-    return p
-
-
-def _rel_rms(y: np.ndarray, yr: np.ndarray) -> float:
-    return float(np.sqrt(((y - yr) ** 2).sum() / max((yr ** 2).sum(), 1e-300)))
+from bench.relight_scenes import MAPS, SHARED, rel_rms, scene_file, timeit
 
 
 def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
@@ -71,7 +50,7 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
     from hostlink.relight.render import Relighter
     from hostlink.relight.scene import load_scene
 
-    scene = load_scene(_scene_file(d, False, 24))
+    scene = load_scene(scene_file(d, False, 24))
     taus = [1e-4, 2e-5] if quick else [1e-4, 5e-5, 2e-5, 1e-5, 5e-6]
     stride = 9 if quick else 3
     rows: list[dict[str, Any]] = []
@@ -97,25 +76,10 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
                 y, yr = luminance(b), luminance(ref[mi])
                 rel = np.abs(y - yr) / np.maximum(yr, 1e-12)
                 row["maps"].setdefault(name, {})["moment" if moment else "plain"] = {
-                    "rel_rms": round(_rel_rms(y, yr), 5), "median_rel": round(float(np.median(rel)), 5),
+                    "rel_rms": round(rel_rms(y, yr), 5), "median_rel": round(float(np.median(rel)), 5),
                     "p95_rel": round(float(np.percentile(rel, 95)), 5)}
         rows.append(row)
     return {"stride": stride, "reference_s": round(ref_s, 2), "rows": rows}
-
-
-def _timeit(fn, reps: int) -> dict[str, float]:  # type: ignore[no-untyped-def]
-    """Wall-clock min / median and process-CPU min (ms) over ``reps`` runs after one warm-up."""
-    import os
-
-    fn()
-    ts, cs = [], []
-    for _ in range(reps):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(time.process_time() - c0)
-    return {"min": round(min(ts) * 1e3, 1), "median": round(float(np.median(ts)) * 1e3, 1),
-            "cpu_min": round(min(cs) * 1e3, 1), "load1": round(os.getloadavg()[0], 2)}
 
 
 def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # type: ignore[no-untyped-def]
@@ -130,8 +94,8 @@ def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # t
         rl.set_leaf_light(leaf_lights[mi])
         b, _ = rl.vertex_radiance(eye, vidx)
         y, yr = luminance(b), luminance(ref[mi])
-        row = {"all": round(_rel_rms(y, yr), 4)}
-        row.update({g: round(_rel_rms(y[m], yr[m]), 4) for g, m in groups.items() if m.any()})
+        row = {"all": round(rel_rms(y, yr), 4)}
+        row.update({g: round(rel_rms(y[m], yr[m]), 4) for g, m in groups.items() if m.any()})
         out[name] = row
     return out
 
@@ -145,11 +109,11 @@ def _stages(rl, eye: np.ndarray, leaf: np.ndarray, reps: int) -> dict[str, dict[
     pos = rl.positions()
     wo = rl._wo(eye, pos, allv)
     st = rl._static(allv, wo)
-    out = {"light_tables": _timeit(lambda: light_tables(leaf), reps),
-           "static_shade_all": _timeit(lambda: rl._static(allv, wo), reps),
-           "rasterize_640x480": _timeit(lambda: rasterize(rl.scene.camera, pos, rl.pre.faces, rays=False), reps)}
+    out = {"light_tables": timeit(lambda: light_tables(leaf), reps),
+           "static_shade_all": timeit(lambda: rl._static(allv, wo), reps),
+           "rasterize_640x480": timeit(lambda: rasterize(rl.scene.camera, pos, rl.pre.faces, rays=False), reps)}
     if rl.movable:
-        out["occlusion_all"] = _timeit(lambda: rl._occlusion(allv, wo, pos, st), reps)
+        out["occlusion_all"] = timeit(lambda: rl._occlusion(allv, wo, pos, st), reps)
     return out
 
 
@@ -163,20 +127,20 @@ def _frames(rls, rld, maps: list[np.ndarray], reps: int) -> dict[str, dict[str, 
     eye = cam.position
     allv = np.arange(len(rls.pre.vertices))
     ms: dict[str, dict[str, float]] = {}
-    ms["static_all_vertices_shade"] = _timeit(lambda: rls.vertex_radiance(eye, allv), reps)
-    ms["static_light_change"] = _timeit(lambda: (rls.set_equirect(maps[2]), rls.render(raster=raster)), reps)
-    ms["static_brdf_change"] = _timeit(lambda: (rls.set_material("clay", Material("ward", (0.5, 0.4, 0.3), (0.3, 0.3, 0.3), alpha=0.2)),
+    ms["static_all_vertices_shade"] = timeit(lambda: rls.vertex_radiance(eye, allv), reps)
+    ms["static_light_change"] = timeit(lambda: (rls.set_equirect(maps[2]), rls.render(raster=raster)), reps)
+    ms["static_brdf_change"] = timeit(lambda: (rls.set_material("clay", Material("ward", (0.5, 0.4, 0.3), (0.3, 0.3, 0.3), alpha=0.2)),
                                                 rls.render(raster=raster)), reps)
     orbit = iter([Camera(np.array([2.5 * np.sin(a), 1.2, 2.5 * np.cos(a)]), cam.look_at, cam.up, cam.fov_deg,
                          cam.width, cam.height) for a in np.linspace(0.3, 1.2, 1000)])
-    ms["static_view_change"] = _timeit(lambda: rls.render(next(orbit)), reps)   # raster + glossy re-shade
+    ms["static_view_change"] = timeit(lambda: rls.render(next(orbit)), reps)   # raster + glossy re-shade
     step = iter(np.linspace(0, 0.6, 1000))
-    ms["moving_all_vertices_shade"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
+    ms["moving_all_vertices_shade"] = timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
                                                        rld.vertex_radiance(eye, allv)), reps)
-    ms["moving_frame"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]), rld.render()), reps)
+    ms["moving_frame"] = timeit(lambda: (rld.move("spot", [next(step), 0, 0]), rld.render()), reps)
     turn = iter(np.linspace(0, 90, 1000))
-    ms["rotating_frame"] = _timeit(lambda: (rld.move("spot", [0.3, 0, 0], [0, next(turn), 0]), rld.render()), reps)
-    ms["moving_frame_with_light_change"] = _timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
+    ms["rotating_frame"] = timeit(lambda: (rld.move("spot", [0.3, 0, 0], [0, next(turn), 0]), rld.render()), reps)
+    ms["moving_frame_with_light_change"] = timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
                                                             rld.set_equirect(maps[2]), rld.render()), reps)
     rld.move("spot", [0, 0, 0])
     return ms
@@ -190,9 +154,9 @@ def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]
     spheres, grid = (8, 8) if quick else (32, 32)
     reps = 3 if quick else 9
     out: dict[str, Any] = {"vcf_spheres": spheres, "vcf_grid": grid, "reps": reps}
-    dyn_scene = load_scene(_scene_file(d, True, 130, 640, 480))
+    dyn_scene = load_scene(scene_file(d, True, 130, 640, 480))
     dyn = precompute(dyn_scene, spheres=spheres, grid=grid, cache_dir=d / "cache", progress=False)
-    st_scene = load_scene(_scene_file(d, False, 130, 640, 480))
+    st_scene = load_scene(scene_file(d, False, 130, 640, 480))
     st = precompute(st_scene, cache_dir=d / "cache", progress=False)
     out["vertices"] = len(st.vertices)
     out["precompute_static_s"] = round(st.seconds, 1)

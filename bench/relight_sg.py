@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.relight import MAPS, SHARED, _rel_rms, _scene_file, _timeit
+from bench.relight_scenes import MAPS, SHARED, rel_rms, scene_file, timeit
 
 
 def _deformed(rest: np.ndarray, f: int) -> np.ndarray:
@@ -44,7 +44,7 @@ def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
 
     out: dict[str, Any] = {}
     for clay in ("lambert", "phong"):
-        p = _scene_file(d, False, 24)
+        p = scene_file(d, False, 24)
         doc = json.loads(p.read_text())
         doc["materials"]["clay"]["type"] = clay
         p = p.with_name(f"sg_{clay}.json")
@@ -65,7 +65,7 @@ def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
                 t0 = time.perf_counter()
                 b = rl.vertex_radiance(eye)
                 ms.append((time.perf_counter() - t0) * 1e3)
-                errs[name] = round(_rel_rms(luminance(b[vidx]), luminance(ref[k])), 4)
+                errs[name] = round(rel_rms(luminance(b[vidx]), luminance(ref[k])), 4)
             out[f"{clay}/{vis}"] = {"rel_rms": errs, "max": max(errs.values()),
                                     "shade_all_vertices_ms_median": round(float(np.median(ms)), 1),
                                     "vertices": len(rl.vertices), "reference_s": round(ref_s, 1)}
@@ -79,7 +79,7 @@ def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
                 b = rl.vertex_radiance(eye, vidx)
                 r = brute_force_radiance(rl.vertices, rl.faces, rl.normals(), rl.matid, rl.mats,
                                          scene_eps(scene), leaf[1:2], eye, vidx)[0]
-                frames.append(round(_rel_rms(luminance(b), luminance(r)), 4))
+                frames.append(round(rel_rms(luminance(b), luminance(r)), 4))
             out["phong/voxels/deforming_rooitou"] = frames
     return out
 
@@ -88,7 +88,7 @@ def _speed(d: Path, lobes: list[Any], reps: int) -> dict[str, Any]:
     from device.core.sg import SGLighting
     from hostlink.relight.scene import load_scene
 
-    scene = load_scene(_scene_file(d, False, 131, 640, 480))
+    scene = load_scene(scene_file(d, False, 131, 640, 480))
     out: dict[str, Any] = {"vertices": sum(len(o.mesh.vertices) for o in scene.objects), "width": 640, "height": 480}
     sun, other = lobes[1], lobes[3]            # rooitou (a sun peak), lebombo (no peak)
     dim = SGLighting(sun.axes, sun.sharpness, sun.amplitude * 0.5, list(sun.kinds))
@@ -132,11 +132,11 @@ def _frames(scene: Any, vis: str, sun: Any, dim: Any, other: Any, reps: int) -> 
         rl.set_vertices("spot", _deformed(rest, state["k"] % 3))
         rl.render()
 
-    rows["light_change_peaks_still"] = _timeit(light_dim, reps)
-    rows["light_change_peaks_moved"] = _timeit(light_move, reps)
+    rows["light_change_peaks_still"] = timeit(light_dim, reps)
+    rows["light_change_peaks_moved"] = timeit(light_move, reps)
     rl.set_sg(sun)
-    rows["rigid_move"] = _timeit(move, reps)
-    rows["deform"] = _timeit(deform, reps)
+    rows["rigid_move"] = timeit(move, reps)
+    rows["deform"] = timeit(deform, reps)
     return rows
 
 
@@ -147,10 +147,10 @@ def _cold_first_frame(d: Path) -> dict[str, float]:
 
     code = ("import time; t=time.perf_counter()\n"
             "from pathlib import Path\nfrom device.core.imageio import read_hdr_image\n"
-            "from device.sampling.sgfit import fit_sg\nfrom hostlink.relight.scene import load_scene\n"
+            "from device.core.sgfit import fit_sg\nfrom hostlink.relight.scene import load_scene\n"
             "from hostlink.relight.sg import SGRelighter\n"
             f"sg = fit_sg(read_hdr_image(Path({str(SHARED / 'envmaps' / MAPS[1])!r})))\nt1=time.perf_counter()\n"
-            f"rl = SGRelighter(load_scene(Path({str(_scene_file(d, False, 131, 640, 480))!r})))\n"
+            f"rl = SGRelighter(load_scene(Path({str(scene_file(d, False, 131, 640, 480))!r})))\n"
             "rl.set_sg(sg); rl.render(); t2=time.perf_counter()\n"
             "print(t1-t, t2-t1)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
@@ -195,7 +195,7 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     import os
 
     from device.core.imageio import read_hdr_image
-    from device.sampling.sgfit import fit_sg
+    from device.core.sgfit import fit_sg
     from hostlink.relight.lighting import leaf_light_from_equirect
     from hostlink.relight.precompute import default_cache_dir
 

@@ -18,9 +18,8 @@ from device.core.imageio import read_hdr_image
 from device.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
 from device.core.primary import ambient_map, extract_primary
 from device.core.sh import SHProjector, irradiance, project, to_convention
-from device.core.sphere import equirect_row_solid_angle
+from device.core.sphere import coarse_equirect, equirect_row_solid_angle
 from device.formats.cubemap import FACES, CubemapFilter, face_directions, sample_equirect
-from device.sampling.peaks import coarse_equirect
 
 ENVMAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
            "dikhololo_night_1k.hdr", "interior_blender.exr"]

@@ -19,9 +19,9 @@ from device.core.environment import EnvironmentEstimator
 from device.core.imageio import read_hdr_image
 from device.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
 from device.core.primary import ambient_map
+from device.core.sphere import coarse_equirect
 from device.formats.cubemap import CubemapFilter
 from device.formats.scene import gltf_environment, usd_environment
-from device.sampling.peaks import coarse_equirect
 
 NODE_DIR = Path(__file__).parent / "node"
 NODE = shutil.which("node")

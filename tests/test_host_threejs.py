@@ -21,7 +21,7 @@ import pytest
 from device.core.environment import EnvironmentEstimator
 from device.core.imageio import read_hdr_image
 from device.core.sh import irradiance
-from device.sampling.peaks import coarse_equirect
+from device.core.sphere import coarse_equirect
 
 pytestmark = pytest.mark.browser
 

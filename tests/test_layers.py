@@ -4,8 +4,9 @@ production code, and a host library that costs only the base layer.
 Layers, bottom to top (a unit may import only the units listed for it; every import counts,
 also those inside functions)::
 
-    device.core   errors, sphere, healpix, light sets, the Q2-Tree wire format, the calibration
-                  model, image I/O, atomic writes, exit codes
+    device.core   errors, sphere, healpix, light sets, the Q2-Tree and SG wire formats (and the SG
+                  fit, which probe and hosts share), the calibration model, image I/O, atomic
+                  writes, exit codes
     drivers       the camera protocol and the hardware backends
     calibration   technician routines and the calibration store
     device        burst, HDR, projection, samplers, pipeline (the processing)

@@ -3,9 +3,8 @@ under the six shared maps against the brute force (2^15 directions, every ray ca
 so the SG fit's error counts), deformation, the CLI.
 
 Metric as in test_relight_accuracy.py: relative RMS over vertices of the luminance of the radiance
-towards the camera, every 5th vertex. Bounds are the measured figures with a margin (see
-BENCHMARKS.md); the issue's Lambert targets (3% rays / 8% voxels) are not met on every map and
-are not asserted.
+towards the camera, every 5th vertex. Bounds are the issue's targets where they are met; Lambert
+with voxel cone tracing (target 8%, not met) is bounded by its measured figure (BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -61,7 +60,7 @@ def maps(envmap_paths: dict[str, Path]) -> list[np.ndarray]:
 @pytest.fixture(scope="module")
 def lobes(maps: list[np.ndarray]):  # type: ignore[no-untyped-def]
     """The SG fit of each map, as a probe would serve it (fitted once)."""
-    from device.sampling.sgfit import fit_sg
+    from device.core.sgfit import fit_sg
 
     return [fit_sg(m) for m in maps]
 
@@ -145,8 +144,9 @@ def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp
             assert err <= (0.005 if vis == "rays" else 0.02), (vis, MAPS[k], err)
 
 
-# measured 2026-12-04 (BENCHMARKS.md "Issue 17"), bound = measured max + margin
-BOUNDS = {("lambert", "rays"): 0.045, ("phong", "rays"): 0.05,
+# the issue's targets (3% / 5% with exact visibility, 12% Phong with voxels), and for Lambert with
+# voxels, whose 8% target is not met, the measured 11.7% with a margin (BENCHMARKS.md "Issue 17")
+BOUNDS = {("lambert", "rays"): 0.03, ("phong", "rays"): 0.05,
           ("lambert", "voxels"): 0.13, ("phong", "voxels"): 0.12}
 
 

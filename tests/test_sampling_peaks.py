@@ -11,13 +11,14 @@ import pytest
 from device.core.errors import InputError
 from device.core.imageio import read_hdr_image
 from device.core.sphere import (
+    coarse_equirect,
     directions_from_angles,
     equirect_integral,
     equirect_row_solid_angle,
     luminance,
 )
 from device.sampling.metrics import ErrorReference
-from device.sampling.peaks import choose_light_count, coarse_equirect, find_peaks
+from device.sampling.peaks import choose_light_count, find_peaks
 from device.sampling.q2tree import Q2TreeSampler
 from sim.scene import rasterize_disc
 

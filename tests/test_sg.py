@@ -17,10 +17,14 @@ from service_harness import running_service, service_config
 from device.core.imageio import read_hdr_image
 from device.core.lightset import LightSet
 from device.core.sg import SGLighting, lobe_integral, sharpness_from_resultant, triple_integral
-from device.core.sphere import equirect_directions, equirect_integral, equirect_row_solid_angle
+from device.core.sgfit import fit_sg
+from device.core.sphere import (
+    coarse_equirect,
+    equirect_directions,
+    equirect_integral,
+    equirect_row_solid_angle,
+)
 from device.sampling.metrics import ErrorReference
-from device.sampling.peaks import coarse_equirect
-from device.sampling.sgfit import fit_sg
 
 ENVMAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
            "dikhololo_night_1k.hdr", "interior_blender.exr"]

@@ -22,6 +22,7 @@ __all__ = [
     "LUM_G",
     "LUM_R",
     "angles_from_directions",
+    "coarse_equirect",
     "directions_from_angles",
     "equirect_directions",
     "equirect_integral",
@@ -99,3 +100,23 @@ def equirect_integral(image: np.ndarray) -> np.ndarray:
     omega = equirect_row_solid_angle(h, w)
     rows = image.astype(np.float64, copy=False).sum(axis=1)
     return np.tensordot(omega, rows, axes=(0, 0))
+
+
+def coarse_equirect(equirect: np.ndarray, height: int = 64) -> np.ndarray:
+    """Energy-preserving block average of an (H, 2H, 3) map down to (height, 2 height, 3).
+
+    Each block is the solid-angle-weighted mean of its pixels, so radiance x solid angle is
+    conserved exactly (float64 sums, float32 output). ``H`` must be a multiple of ``height``;
+    smaller maps are returned unchanged.
+    """
+    h, w = equirect.shape[:2]
+    if h <= height or h % height:
+        return np.asarray(equirect, np.float32)
+    f = h // height
+    om = equirect_row_solid_angle(h, w)
+    p = np.zeros((height, 2 * height, 3))
+    for r0 in range(0, h, 64 * f):   # in bands: float64 copies of a band only
+        band = np.asarray(equirect[r0:r0 + 64 * f], np.float64) * om[r0:r0 + 64 * f, None, None]
+        n = band.shape[0] // f
+        p[r0 // f:r0 // f + n] = band.reshape(n, f, 2 * height, f, 3).sum(axis=(1, 3))
+    return (p / equirect_row_solid_angle(height)[:, None, None]).astype(np.float32)

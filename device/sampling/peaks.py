@@ -27,18 +27,22 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 
 from device.core.components import DEFAULT_CONTRAST, DEFAULT_RELATIVE, peak_threshold
 from device.core.components import sphere_labels as _sphere_labels
 from device.core.errors import InputError
 from device.core.lightset import LightSet
-from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
+from device.core.sphere import (
+    coarse_equirect,
+    directions_from_angles,
+    equirect_row_solid_angle,
+    luminance,
+)
 
 from .base import sanitize_radiance
 
-__all__ = ["Peak", "choose_light_count", "coarse_equirect", "find_peaks", "peak_threshold"]
+__all__ = ["Peak", "choose_light_count", "find_peaks", "peak_threshold"]
 
 
 
@@ -113,34 +117,6 @@ def find_peaks(equirect: np.ndarray, *, threshold: float | None = None,
         peaks.append(Peak(cen[i] / norms[i], rgb[i], float(sa[i]), int(cnt[i]),
                           float(peak_lum[i]), float(lpow[i] / total)))
     return peaks
-
-
-@numba.njit(cache=True, nogil=True)
-def _block_power(m: np.ndarray, omega: np.ndarray, f: int, out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Power (radiance x solid angle, float64) of f x f blocks of a float32 map, added to ``out``."""
-    for r in range(m.shape[0]):
-        om = omega[r]
-        i = r // f
-        for b in range(out.shape[1]):
-            for c in range(b * f, b * f + f):
-                out[i, b, 0] += m[r, c, 0] * om
-                out[i, b, 1] += m[r, c, 1] * om
-                out[i, b, 2] += m[r, c, 2] * om
-
-
-def coarse_equirect(equirect: np.ndarray, height: int = 64) -> np.ndarray:
-    """Energy-preserving block average of an (H, 2H, 3) map down to (height, 2 height, 3).
-
-    Each block is the solid-angle-weighted mean of its pixels, so radiance x solid angle is
-    conserved exactly (float64 sums, float32 output). ``H`` must be a multiple of ``height``;
-    smaller maps are returned unchanged.
-    """
-    h, w = equirect.shape[:2]
-    if h <= height or h % height:
-        return np.asarray(equirect, np.float32)
-    p = np.zeros((height, 2 * height, 3))
-    _block_power(np.ascontiguousarray(equirect, np.float32), equirect_row_solid_angle(h, w), h // height, p)
-    return (p / equirect_row_solid_angle(height)[:, None, None]).astype(np.float32)
 
 
 def choose_light_count(equirect: np.ndarray, max_count: int, error_target: float, *,

@@ -32,7 +32,7 @@ async def sh_payload(st: ServiceState, conv: str) -> bytes | None:
 
 def sg_body(st: ServiceState) -> bytes | None:
     """The latest frame's SG lobes as JSON bytes (blocking: run in a thread), or ``None``."""
-    from device.sampling.sgfit import fit_sg
+    from device.core.sgfit import fit_sg
 
     r = st.runner.result
     if r is None:

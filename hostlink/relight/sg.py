@@ -2,7 +2,7 @@
 move or deform every frame.
 
 The lighting is the probe's SG lobes (:class:`device.core.sg.SGLighting`: ``GET /api/v1/sg``, or
-fitted here from a map with :func:`device.sampling.sgfit.fit_sg`): a few *peak* lobes (lamps,
+fitted here from a map with :func:`device.core.sgfit.fit_sg`): a few *peak* lobes (lamps,
 the sun) and many *residual* lobes on fixed HEALPix grids. Outgoing radiance at a point with
 normal ``n`` towards ``w_o`` (paper eq. 1-2, the BRDF as SGs, visibility by cones)::
 
@@ -258,7 +258,7 @@ class SGRelighter:
     # ---- lighting ----------------------------------------------------------------------------
     def set_equirect(self, img: np.ndarray) -> None:
         """Fit SG lobes to an (H, 2H, 3) map (as the probe does) and use them."""
-        from device.sampling.sgfit import WORK_HEIGHT, fit_sg
+        from device.core.sgfit import WORK_HEIGHT, fit_sg
 
         a = np.asarray(img, np.float32)
         if a.ndim != 3 or a.shape[2] != 3 or a.shape[1] != 2 * a.shape[0]:
@@ -448,8 +448,13 @@ class SGRelighter:
         n, k = tan.shape
         out = np.empty((n, k))
         plam = self._peaks[1]
+        diffuse = [j for j in range(k) if first + j < 7]
+        if diffuse:   # the residual's visibility, measured: one light-weighted fraction for all 7
+            out[:, diffuse] = self._residual_visibility(es, eps, pos, nrm)[:, None]
         for j in range(k):
             c = first + j
+            if c < 7:
+                continue
             peak = c >= 8
             m = RAYS_PER_PEAK if peak else RAYS_PER_CONE
             g = (np.arange(m) + 0.5) / m
@@ -485,6 +490,32 @@ class SGRelighter:
             else:
                 out[:, j] = (~occ).mean(axis=1)
         return out
+
+    def _residual_visibility(self, es: Any, eps: float, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+        """``V_res`` by rays: 7 x RAYS_PER_CONE cosine-distributed rays over each point's
+        hemisphere (a Fibonacci pattern, turned per point), each weighted by the residual's
+        radiance along it; the fraction of that light that escapes. The cones' partition is the
+        voxel method's approximation; with rays the residual's visibility needs none."""
+        from hostlink.relight.precompute import occluded
+
+        n = len(pos)
+        m = 7 * RAYS_PER_CONE
+        g = (np.arange(m) + 0.5) / m
+        ct = np.sqrt(1 - g)                       # cosine-weighted: pdf cos / pi
+        st = np.sqrt(g)
+        phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
+        t1 = np.cross(nrm, np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(nrm, t1)
+        turn = (np.arange(n) * 0.618034 % 1.0)[:, None] * 2 * math.pi   # decorrelate neighbours
+        cp, sp = np.cos(phi[None] + turn), np.sin(phi[None] + turn)
+        d = (ct[None, :, None] * nrm[:, None] + (st[None] * cp)[..., None] * t1[:, None]
+             + (st[None] * sp)[..., None] * t2[:, None])
+        L = self._tables.L if self._tables is not None else None
+        w = np.ones((n, m)) if L is None else np.maximum(_table_lookup(L, d.reshape(-1, 3)).reshape(n, m), 0.0)
+        free = ~occluded(es, np.repeat(pos + eps * nrm, m, axis=0), d.reshape(-1, 3)).reshape(n, m)
+        tot = w.sum(axis=1)
+        return np.where(tot > 0, (w * free).sum(axis=1) / np.where(tot > 0, tot, 1), free.mean(axis=1))
 
     # ---- shading -----------------------------------------------------------------------------
     def shade(self, pos: np.ndarray, nrm: np.ndarray, matid: np.ndarray, eye: np.ndarray,

@@ -43,8 +43,12 @@ from typing import Any
 import numpy as np
 
 from device.core.sg import SGLighting, level_sharpness, lobe_integral, sharpness_from_resultant
-from device.core.sphere import directions_from_angles, equirect_row_solid_angle, luminance
-from device.sampling.peaks import coarse_equirect
+from device.core.sphere import (
+    coarse_equirect,
+    directions_from_angles,
+    equirect_row_solid_angle,
+    luminance,
+)
 
 __all__ = ["DEFAULT_LEVELS", "fit_sg"]
 
