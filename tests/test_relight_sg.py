@@ -245,3 +245,50 @@ def test_cli_renders_without_precompute(shared_data: Path, envmap_paths: dict[st
                        capture_output=True, text=True, env=env, timeout=300, cwd=Path(__file__).parents[1])
     assert r.returncode == 2
     assert "voxels" in r.stderr
+
+
+def test_scene_file_frames_deform_and_moves_keep_the_shape(shared_data: Path, lobes, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """A scene file's deforming object (``"frames"``: OBJ shapes with the mesh's topology):
+    ``set_frame`` takes each shape, a move poses the current shape (it does not reset it), and a
+    frame with another topology or a missing file is refused naming it; the CLI's ``--frame``."""
+    from hostlink.relight.scene import load_obj, load_scene
+    from hostlink.relight.sg import SGRelighter
+
+    mesh = load_obj(shared_data / "meshes" / "spot.obj")
+    for k, s in enumerate((0.9, 0.7)):
+        v = mesh.vertices.copy()
+        v[:, 1] *= s
+        (tmp_path / f"spot_{k}.obj").write_text("\n".join([*(f"v {a} {b} {c}" for a, b, c in v),
+                                                            *(f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces)]) + "\n")
+    doc = _scene_doc(shared_data, "lambert")
+    doc["objects"][0]["frames"] = ["spot_0.obj", "spot_1.obj"]
+    doc["objects"][0]["translation"] = [0.0, 0.1, 0.0]
+    (tmp_path / "d.json").write_text(json.dumps(doc))
+    scene = load_scene(tmp_path / "d.json")
+    rl = SGRelighter(scene)
+    n = len(mesh.vertices)
+    rl.set_frame(1)
+    want = mesh.vertices * np.array([1.0, 0.7, 1.0]) + np.array([0.0, 0.1, 0.0])
+    np.testing.assert_allclose(rl.vertices[:n], want, atol=1e-12)
+    rl.move("spot", np.array([0.5, 0.0, 0.0]))
+    np.testing.assert_allclose(rl.vertices[:n], want + np.array([0.5, 0.0, 0.0]), atol=1e-12)
+    with pytest.raises(InputError, match="frame 2 out of range") as e:
+        rl.set_frame(2)
+    assert e.value.param == "frame"
+    sgj = tmp_path / "sg.json"
+    sgj.write_text(json.dumps(lobes[1].to_json()))
+    for frame, code in (("1", 0), ("5", 2)):
+        r = subprocess.run([sys.executable, "-m", "device.cli", "relight", str(tmp_path / "d.json"), "--method", "sg",
+                            "--lights", str(sgj), "--out", str(tmp_path / "f.png"), "--frame", frame],
+                           capture_output=True, text=True, timeout=300, cwd=Path(__file__).parents[1])
+        assert r.returncode == code, r.stderr
+    assert "frame 5 out of range" in r.stderr
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    doc["objects"][0]["frames"] = ["spot_0.obj", "bad.obj"]
+    (tmp_path / "b.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"bad\.obj: frame of object 'spot' must have the mesh's"):
+        load_scene(tmp_path / "b.json")
+    doc["objects"][0]["frames"] = ["nope.obj"]
+    (tmp_path / "c.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"frame file 'nope\.obj'"):
+        load_scene(tmp_path / "c.json")

@@ -159,6 +159,8 @@ def _run_sg(a: argparse.Namespace, out: Path) -> int:
         for name in d:
             if name not in names:
                 raise InputError(f"{flag}: {name!r} is not an object of {a.scene}", param=flag)
+    if a.frame is not None:
+        rl.set_frame(a.frame)
     for name in set(moves) | set(turns):
         rl.move(name, moves.get(name, np.zeros(3)), turns.get(name))
     rl.set_equirect(lights) if kind == "map" else rl.set_sg(lights)
@@ -234,6 +236,8 @@ def main(argv: list[str]) -> int:
                         "probe URL, whose /api/v1/sg it reads)")
     p.add_argument("--visibility", choices=("voxels", "rays"), default="voxels",
                    help="with --method sg: voxel cone tracing (default) or Embree rays per cone")
+    p.add_argument("--frame", type=int, default=None, metavar="K",
+                   help="with --method sg: deforming objects (their 'frames' in the scene file) take shape K")
     p.add_argument("--voxels", type=int, default=128, help="with --method sg: voxel grid side (power of two, default 128)")
     p.add_argument("--tau", type=float, default=DEFAULT_TAU, help=f"SVC cut threshold (default {DEFAULT_TAU})")
     p.add_argument("--spheres", type=int, default=32, help="VCF spheres per movable object (default 32)")

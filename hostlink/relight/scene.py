@@ -12,6 +12,11 @@ Scene file (JSON, ``version: 1``; mesh paths relative to the scene file)::
      "camera": {"position": [2, 1.5, 2.5], "look_at": [0, 0, 0], "up": [0, 1, 0],
                 "fov_deg": 40, "width": 640, "height": 480}}
 
+A deforming object lists its shapes: ``"frames": ["spot_000.obj", "spot_001.obj", ...]``, OBJ files
+with the mesh's vertex count and faces, transformed like the mesh; ``--method sg`` renders any of
+them with no precompute (``lightprobe relight SCENE --method sg --frame K``;
+:meth:`hostlink.relight.sg.SGRelighter.set_frame`), the cuts use ``mesh``.
+
 Material types: ``lambert`` (kd), ``phong`` / ``blinn-phong`` (kd, ks, exponent), ``ward`` (kd,
 ks, alpha). Rotations are XYZ Euler angles in degrees, applied after scale and before translation.
 Errors in the file raise :class:`device.core.errors.InputError` naming the file (and line for OBJ).
@@ -70,6 +75,7 @@ class SceneObject:
     mesh: Mesh             # world-space at the precompute pose
     material: str
     movable: bool = False
+    frames: list[np.ndarray] = field(default_factory=list)   # deforming: (V, 3) world vertices per frame
 
 
 @dataclass
@@ -232,8 +238,22 @@ def load_scene(path: str | Path) -> Scene:
         mesh = load_obj(mesh_path)
         rot = rotation_matrix(_vec(od, "rotation_deg", [0, 0, 0], where))
         scale = float(od.get("scale", 1.0))
-        v = mesh.vertices * scale @ rot.T + _vec(od, "translation", [0, 0, 0], where)
-        objects.append(SceneObject(name, Mesh(v, mesh.faces), mat, bool(od.get("movable", False))))
+        tr = _vec(od, "translation", [0, 0, 0], where)
+        v = mesh.vertices * scale @ rot.T + tr
+        frames = []
+        fl = od.get("frames", [])
+        if not isinstance(fl, list) or not all(isinstance(x, str) for x in fl):
+            raise InputError(f"{where}: 'frames' of object {name!r} must be a list of OBJ file names")
+        for fname in fl:
+            fp = (p.parent / fname).resolve()
+            if not fp.is_file():
+                raise InputError(f"{where}: frame file {fname!r} of object {name!r} not found")
+            fm = load_obj(fp)
+            if fm.vertices.shape != mesh.vertices.shape or not np.array_equal(fm.faces, mesh.faces):
+                raise InputError(f"{fp}: frame of object {name!r} must have the mesh's {len(mesh.vertices)} "
+                                 f"vertices and its faces (has {len(fm.vertices)} vertices, {len(fm.faces)} faces)")
+            frames.append(fm.vertices * scale @ rot.T + tr)
+        objects.append(SceneObject(name, Mesh(v, mesh.faces), mat, bool(od.get("movable", False)), frames))
     mats.setdefault("default", Material())
     g = doc.get("ground")
     if g:

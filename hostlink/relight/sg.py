@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -198,6 +198,9 @@ class _Object:
     rest: np.ndarray        # (V, 3) vertices as loaded
     faces: np.ndarray       # (F, 3) local indices
     base: int               # first global vertex index
+    shape: np.ndarray | None = None                 # the current shape (set_vertices), unposed
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))   # the pose (move)
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 class SGRelighter:
@@ -323,29 +326,53 @@ class SGRelighter:
         raise InputError(f"no object named {name!r} (objects: {', '.join(o.name for o in self.objects)})", param="object")
 
     def set_vertices(self, name: str, vertices: np.ndarray) -> None:
-        """Deform object ``name``: its vertices now (same count and faces)."""
+        """Deform object ``name``: its shape now (same vertex count and faces), posed by the
+        object's current :meth:`move`."""
         k = self._index(name)
         ob = self.objects[k]
         v = np.asarray(vertices, np.float64)
         if v.shape != ob.rest.shape or not np.isfinite(v).all():
             raise InputError(f"object {name!r}: expected {ob.rest.shape} finite vertices, got {v.shape}",
                              param="vertices")
-        self.vertices[ob.base:ob.base + len(v)] = v
+        ob.shape = v.copy()
+        self._place(k)
+
+    def _place(self, k: int) -> None:
         from hostlink.relight.scene import Mesh
 
+        ob = self.objects[k]
+        shape = ob.rest if ob.shape is None else ob.shape
+        c = ob.rest.mean(axis=0)
+        v = (shape - c) @ ob.rotation.T + c + ob.translation
+        self.vertices[ob.base:ob.base + len(v)] = v
         self._normals[ob.base:ob.base + len(v)] = vertex_normals(Mesh(v, ob.faces))
         self._dirty.add(k)
         self._geometry += 1
 
+    def set_frame(self, k: int) -> None:
+        """Every deforming object of the scene file (``"frames"``) takes its shape ``k``."""
+        deforming = [o for o in self.scene.objects if o.frames]
+        if not deforming:
+            raise InputError("no object of the scene lists 'frames'", param="frame")
+        for o in deforming:
+            if not 0 <= k < len(o.frames):
+                raise InputError(f"frame {k} out of range: object {o.name!r} has {len(o.frames)} frames", param="frame")
+            self.set_vertices(o.name, o.frames[k])
+
     def move(self, name: str, translation: np.ndarray, rotation: np.ndarray | None = None) -> None:
         """Pose object ``name`` rigidly: rotation (XYZ Euler degrees, or a 3x3 matrix) about its
-        loaded centroid, then ``translation``, both relative to the loaded pose."""
+        loaded centroid, then ``translation``, both relative to the loaded pose; its shape
+        (:meth:`set_vertices`, :meth:`set_frame`) is kept."""
         k = self._index(name)
         ob = self.objects[k]
         r = np.asarray(rotation if rotation is not None else np.zeros(3), np.float64)
         R = rotation_matrix(r) if r.shape == (3,) else r
-        c = ob.rest.mean(axis=0)
-        self.set_vertices(name, (ob.rest - c) @ R.T + c + np.asarray(translation, np.float64))
+        t = np.asarray(translation, np.float64)
+        if R.shape != (3, 3) or t.shape != (3,) or not (np.isfinite(R).all() and np.isfinite(t).all()):
+            raise InputError(f"object {name!r}: a move needs a finite translation (3,) and rotation (3,) or (3, 3)",
+                             param="move")
+        ob.rotation, ob.translation = R, t
+        self._place(k)
 
     def positions(self) -> np.ndarray:
         return self.vertices
