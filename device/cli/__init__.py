@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cameras": ("drivers.cli", "list attached cameras and their capabilities"),
     "discover": ("hostlink.cli", "list probes on the LAN"),
     "relight": ("hostlink.relight.cli", "relight a 3D scene with a probe's lights"),
+    "room": ("hostlink.room.cli", "recover a photographed room's reflectance and render it under other lights"),
     "bench": ("bench.cli", "run a benchmark, write JSON and PNG plots"),
 }
 

@@ -41,6 +41,7 @@ __all__ = [
     "Scene",
     "SceneObject",
     "load_obj",
+    "load_obj_groups",
     "load_scene",
     "rotation_matrix",
     "vertex_normals",
@@ -109,6 +110,12 @@ def _obj_index(tok: str, n: int, where: str) -> int:
 
 def load_obj(path: str | Path) -> Mesh:
     """Parse vertices and faces (polygons fan-triangulated; v/vt/vn and negative indices)."""
+    return load_obj_groups(path)[0]
+
+
+def load_obj_groups(path: str | Path) -> tuple[Mesh, np.ndarray, list[str]]:
+    """:func:`load_obj` plus each face's group (``o`` / ``g`` name; faces before any are
+    ``"default"``): (mesh, (F,) group index, group names)."""
     p = Path(path)
     try:
         text = p.read_text(errors="replace")
@@ -116,6 +123,9 @@ def load_obj(path: str | Path) -> Mesh:
         raise InputError(f"{p}: cannot read mesh ({e.strerror})") from None
     verts: list[tuple[float, float, float]] = []
     faces: list[tuple[int, int, int]] = []
+    fgroup: list[int] = []
+    names: list[str] = ["default"]
+    current = 0
     for lineno, line in enumerate(text.splitlines(), 1):
         parts = line.split("#", 1)[0].split()
         if not parts:
@@ -131,14 +141,20 @@ def load_obj(path: str | Path) -> Mesh:
             if not all(np.isfinite(xyz)):
                 raise InputError(f"{where}: non-finite vertex coordinate")
             verts.append(xyz)
+        elif parts[0] in ("o", "g"):
+            name = " ".join(parts[1:]) or "default"
+            if name not in names:
+                names.append(name)
+            current = names.index(name)
         elif parts[0] == "f":
             if len(parts) < 4:
                 raise InputError(f"{where}: face needs at least 3 vertices: {line.strip()[:60]!r}")
             idx = [_obj_index(t, len(verts), where) for t in parts[1:]]
             faces.extend((idx[0], idx[i], idx[i + 1]) for i in range(1, len(idx) - 1))
+            fgroup.extend([current] * (len(idx) - 2))
     if not verts or not faces:
         raise InputError(f"{p}: no vertices or faces")
-    return Mesh(np.array(verts, np.float64), np.array(faces, np.int64))
+    return Mesh(np.array(verts, np.float64), np.array(faces, np.int64)), np.array(fgroup, np.int64), names
 
 
 def vertex_normals(mesh: Mesh) -> np.ndarray:

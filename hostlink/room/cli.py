@@ -1,0 +1,85 @@
+"""``lightprobe room recover DIR`` and ``lightprobe room render DIR --edit EDITS.json --out IMAGE``.
+
+``recover`` writes ``DIR/reflectance.exr`` and ``DIR/confidence.exr`` (atomically) and prints what
+it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
+captures' format: ``{"lights": [{"position", "radius", "rgb"}]}``, the whole edited set: change
+a power, add or drop a light) and writes the room under them (``.exr`` linear, ``.png``
+tone-mapped). Bad input exits 2 naming the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _room(d: Path):  # type: ignore[no-untyped-def]
+    from hostlink.room.room import Room
+
+    return Room(d)
+
+
+def _recover(a: argparse.Namespace) -> int:
+    from device.core.imageio import write_exr
+
+    t0 = time.perf_counter()
+    room = _room(a.dir)
+    img = room.recover(filters=not a.no_filters)
+    write_exr(a.dir / "reflectance.exr", img, {"lightprobe": "room reflectance"})
+    conf = room.confidence_image()
+    write_exr(a.dir / "confidence.exr", conf[..., None].repeat(3, axis=2), {"lightprobe": "room confidence"})
+    if not a.quiet:
+        print(f"room: {len(room.captures)} captures, {int(room.cover.sum())} pixels, {len(room.f)} patches, "
+              f"{time.perf_counter() - t0:.1f} s; wrote {a.dir / 'reflectance.exr'}, {a.dir / 'confidence.exr'}",
+              file=sys.stderr)
+    return 0
+
+
+def _render(a: argparse.Namespace) -> int:
+    from device.core.errors import InputError
+    from device.core.imageio import read_hdr_image
+    from hostlink.relight.render import write_image
+    from hostlink.room.room import load_lights
+
+    out = Path(a.out)
+    if out.suffix.lower() not in (".png", ".exr"):
+        raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
+    lights = load_lights(a.edit)
+    t0 = time.perf_counter()
+    room = _room(a.dir)
+    refl = a.dir / "reflectance.exr"
+    if refl.is_file() and (a.dir / "confidence.exr").is_file():
+        room.use_reflectance(read_hdr_image(refl), read_hdr_image(a.dir / "confidence.exr")[..., 0])
+    else:
+        room.recover()
+    img = room.render(lights)
+    write_image(out, img, mask=room.cover)
+    if not a.quiet:
+        print(f"room: wrote {out} ({len(lights)} lights, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    from device.core.command import run_command
+
+    p = argparse.ArgumentParser(prog="lightprobe room", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("recover", help="recover reflectance.exr and confidence.exr from the captures")
+    r.add_argument("dir", type=Path, help="room folder: room.obj, camera.json, captures/NAME.exr + NAME.json")
+    r.add_argument("--no-filters", action="store_true", help="plain confidence-weighted merge (no outlier test or smoothing)")
+    r.add_argument("--quiet", action="store_true")
+    e = sub.add_parser("render", help="render the room under the lights of EDITS.json")
+    e.add_argument("dir", type=Path)
+    e.add_argument("--edit", type=Path, required=True, help="EDITS.json: {\"lights\": [...]}, the edited light set")
+    e.add_argument("--out", required=True, help="IMAGE.exr (linear) or IMAGE.png (tone-mapped)")
+    e.add_argument("--quiet", action="store_true")
+    a = p.parse_args(argv)
+    return run_command(_recover if a.cmd == "recover" else _render, a)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

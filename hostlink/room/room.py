@@ -1,0 +1,548 @@
+"""Relighting a real, photographed room (Loscos, Frasson, Drettakis, Walter, Granier, Poulin 1999).
+
+Input, a folder a user can make::
+
+    room.obj                 approximate geometry, one ``o`` / ``g`` group per surface or object
+    camera.json              {"K": 3x3, "R": 3x3, "t": [3], "width": W, "height": H}: world to
+                             camera, OpenCV's convention (x right, y down, z forward; pixel
+                             centres at integer coordinates)
+    captures/NAME.exr        linear HDR photographs from that camera (e.g. ``lightprobe fuse``)
+    captures/NAME.json       {"lights": [{"position": [x, y, z], "radius": r, "rgb": [r, g, b]}]}:
+                             small spherical lights, emitted power per colour (W) in world units
+
+What it does (the paper's steps; the choices it leaves open, and ours):
+
+- **Item buffer**: ``room.obj`` split into patches (triangles no longer than ``patch_size``,
+  default the room's diagonal / 16) and rasterised from the camera: per pixel the 3D point,
+  the patch, its normal (towards the camera) and its group.
+- **Direct light**: each spherical light as ``light_samples`` points on the cap facing the
+  receiver, each a point light of 1 / n of the sphere's intensity ``rgb / (4 pi)`` with its own
+  Embree shadow ray (the paper's adaptive rays to an area light, fixed count here).
+- **Indirect light: a radiosity solve over the patches** with the captures' own measurements:
+  a patch seen by the camera has its measured radiance; the others ``rho / pi (E_direct +
+  E_indirect)`` with their group's current reflectance; patch-to-patch form factors with one
+  visibility ray between centres. (The paper's first, ambient-only estimate is not offered.)
+- **Reflectance** per capture ``rho_k = pi B_k / (E_direct + E_indirect)`` (eq. 2), merged with
+  confidences ``w_k`` = the direct share of the capture's irradiance (eq. 3: lit pixels count,
+  shadowed ones barely), after the outlier test around the per-pixel median of the captures
+  (``|rho_k - median| > 0.3 median`` rejected; the paper's 0.75 / 0.3 thresholds, the 0.3 kept)
+  and a 3 x 3 smoothing within each group. Pixels where a light sphere itself is in view are left
+  out of that capture. Three passes: each refreshes the groups' reflectance the unseen patches use.
+- **Relighting**: any set of spherical lights (power changes, added or removed lights): the
+  same direct term, the radiosity solve with the recovered reflectance for every patch, per
+  pixel ``B = rho / pi (E_direct + E_indirect)``. A light's geometry term is cached, so a power
+  change is a weighted sum (no rays), an added light traces its own rays only.
+
+Not built: virtual objects inserted into the room, real objects removed (texture synthesis on
+the reflectance), lights found from probes' peaks.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from device.core.errors import InputError
+from device.core.sphere import luminance
+
+__all__ = ["CameraCV", "Light", "Room", "load_camera", "load_lights"]
+
+OUTLIER = 0.3          # a capture's reflectance further than this fraction from the median is rejected
+
+
+@dataclass(frozen=True)
+class Light:
+    position: tuple[float, float, float]
+    radius: float
+    rgb: tuple[float, float, float]     # emitted power per colour (W)
+
+
+@dataclass
+class CameraCV:
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def center(self) -> np.ndarray:
+        return np.asarray(-self.R.T @ self.t)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: missing", param=path.name) from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror})", param=path.name) from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}:{e.lineno}: invalid JSON ({e.msg})", param=path.name) from None
+
+
+def _mat(doc: dict[str, Any], key: str, shape: tuple[int, ...], where: Path) -> np.ndarray:
+    try:
+        a = np.asarray(doc[key], np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{where}: {key!r} must be a {'x'.join(map(str, shape))} array of numbers", param=key) from None
+    if a.shape != shape or not np.isfinite(a).all():
+        raise InputError(f"{where}: {key!r} must be a finite {'x'.join(map(str, shape))} array, got shape {a.shape}",
+                         param=key)
+    return a
+
+
+def load_camera(path: str | Path) -> CameraCV:
+    p = Path(path)
+    doc = _read_json(p)
+    if not isinstance(doc, dict):
+        raise InputError(f"{p}: expected an object with K, R, t, width, height", param="camera")
+    K, R, t = _mat(doc, "K", (3, 3), p), _mat(doc, "R", (3, 3), p), _mat(doc, "t", (3,), p)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InputError(f"{p}: 'R' must be a rotation (orthonormal, det +1)", param="R")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"{p}: 'K' needs positive focal lengths", param="K")
+    try:
+        w, h = int(doc["width"]), int(doc["height"])
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{p}: 'width' and 'height' must be integers", param="width") from None
+    if not (0 < w <= 16384 and 0 < h <= 16384):
+        raise InputError(f"{p}: width and height must be in 1..16384, got {w} x {h}", param="width")
+    return CameraCV(K, R, t, w, h)
+
+
+def load_lights(path: str | Path) -> list[Light]:
+    p = Path(path)
+    doc = _read_json(p)
+    if not isinstance(doc, dict) or not isinstance(doc.get("lights"), list) or not doc["lights"]:
+        raise InputError(f"{p}: expected {{\"lights\": [{{\"position\", \"radius\", \"rgb\"}}, ...]}}", param="lights")
+    out = []
+    for i, d in enumerate(doc["lights"]):
+        if not isinstance(d, dict):
+            raise InputError(f"{p}: lights[{i}] must be an object", param="lights")
+        pos = _mat(d, "position", (3,), p)
+        rgb = _mat(d, "rgb", (3,), p)
+        try:
+            r = float(d["radius"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"{p}: lights[{i}].radius must be a number", param="radius") from None
+        if not (math.isfinite(r) and r > 0) or (rgb < 0).any():
+            raise InputError(f"{p}: lights[{i}] needs radius > 0 and rgb >= 0", param="radius")
+        out.append(Light(tuple(pos.tolist()), r, tuple(rgb.tolist())))  # type: ignore[arg-type]
+    return out
+
+
+def _subdivide(v: np.ndarray, f: np.ndarray, fg: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each triangle split on a barycentric grid into n^2 triangles no longer than ``max_edge``."""
+    verts, faces, groups = [], [], []
+    base = 0
+    for t, (a, b, c) in enumerate(f):
+        A, B, C = v[a], v[b], v[c]
+        e = max(np.linalg.norm(B - A), np.linalg.norm(C - A), np.linalg.norm(C - B))
+        n = max(1, math.ceil(e / max_edge))
+        idx: dict[tuple[int, int], int] = {}
+        pts: list[np.ndarray] = []
+        for i in range(n + 1):
+            for j in range(n + 1 - i):
+                idx[i, j] = len(pts)
+                pts.append(A + (B - A) * (i / n) + (C - A) * (j / n))
+        tri = []
+        for i in range(n):
+            for j in range(n - i):
+                tri.append((idx[i, j], idx[i + 1, j], idx[i, j + 1]))
+                if i + j < n - 1:
+                    tri.append((idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]))
+        verts.append(np.array(pts))
+        faces.append(np.array(tri) + base)
+        groups.append(np.full(len(tri), fg[t]))
+        base += len(pts)
+    return np.concatenate(verts), np.concatenate(faces).astype(np.int64), np.concatenate(groups)
+
+
+def _raster_cv(cam: CameraCV, v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from hostlink.relight.raster import _raster
+
+    xc = v @ cam.R.T + cam.t
+    z = xc[:, 2]
+    zs = np.where(z > 1e-9, z, 1e-9)
+    sx = cam.K[0, 0] * xc[:, 0] / zs + cam.K[0, 1] * xc[:, 1] / zs + cam.K[0, 2]
+    sy = cam.K[1, 1] * xc[:, 1] / zs + cam.K[1, 2]
+    tri = np.full((cam.height, cam.width), -1, np.int64)
+    bary = np.zeros((cam.height, cam.width, 3), np.float32)
+    _raster(sx, sy, z, f, cam.width, cam.height, tri, bary, np.zeros((cam.height, cam.width)))
+    return tri, bary
+
+
+class Room:
+    """A photographed room: :meth:`recover` its reflectance, then :meth:`render` it under other
+    lights. ``directory`` holds room.obj, camera.json and captures/ (see the module notes)."""
+
+    def __init__(self, directory: str | Path, *, patch_size: float | None = None, light_samples: int = 16) -> None:
+        from hostlink.relight.precompute import build_embree
+        from hostlink.relight.scene import load_obj_groups
+
+        d = Path(directory)
+        if not d.is_dir():
+            raise InputError(f"{d}: not a folder", param="room")
+        mesh, fg, names = load_obj_groups(d / "room.obj")
+        self.cam = load_camera(d / "camera.json")
+        self.group_names = names
+        diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+        self.eps = 1e-4 * diag
+        self.v, self.f, self.fgroup = _subdivide(mesh.vertices, mesh.faces, fg, patch_size or diag / 16)
+        a, b, c = (self.v[self.f[:, k]] for k in range(3))
+        cr = np.cross(b - a, c - a)
+        self.area = 0.5 * np.linalg.norm(cr, axis=1)
+        self.pn = cr / np.maximum(2 * self.area, 1e-300)[:, None]
+        self.pc = (a + b + c) / 3
+        self.light_samples = int(light_samples)
+        self._es = build_embree([(self.v, self.f)])
+        tri, bary = _raster_cv(self.cam, self.v, self.f)
+        self.cover = tri >= 0
+        if not self.cover.any():
+            raise InputError(f"{d / 'camera.json'}: the camera sees no geometry of room.obj", param="camera")
+        self.patch = tri[self.cover]
+        bw = bary[self.cover].astype(np.float64)
+        fv = self.f[self.patch]
+        self.X = np.einsum("pk,pkj->pj", bw, self.v[fv])
+        n = self.pn[self.patch]
+        flip = np.einsum("ij,ij->i", n, self.cam.center - self.X) < 0
+        self.N = np.where(flip[:, None], -n, n)
+        self.group = self.fgroup[self.patch]
+        # patch normals face the camera side where the camera sees them; elsewhere the room's inside
+        self._orient_patches()
+        self.captures = []
+        cap = d / "captures"
+        files = sorted(cap.glob("*.exr")) if cap.is_dir() else []
+        for p in files:
+            lights = load_lights(p.with_suffix(".json"))
+            for L in lights:
+                self._check_light(L, p.with_suffix(".json"))
+            self.captures.append((p.stem, p, lights))
+        self._geo: dict[Light, tuple[np.ndarray, np.ndarray]] = {}
+        self._F: np.ndarray | None = None
+        self._unit: dict[Light, np.ndarray] = {}
+        self._unit_key: bytes | None = None
+        self.reflectance: np.ndarray | None = None
+        self.confidence: np.ndarray | None = None
+        self.patch_reflectance: np.ndarray | None = None
+
+    # ---- geometry ------------------------------------------------------------------------------
+    def _orient_patches(self) -> None:
+        seen = np.zeros(len(self.f), bool)
+        seen[self.patch] = True
+        flip_seen = np.zeros(len(self.f), bool)
+        np.logical_or.at(flip_seen, self.patch, np.einsum("ij,ij->i", self.pn[self.patch], self.N) < 0)
+        self.pn[seen & flip_seen] *= -1
+        centroid = self.v.mean(axis=0)
+        unseen = ~seen
+        inward = np.einsum("ij,ij->i", self.pn[unseen], centroid - self.pc[unseen]) < 0
+        idx = np.flatnonzero(unseen)[inward]
+        self.pn[idx] *= -1
+
+    def _check_light(self, L: Light, where: Path) -> None:
+        c = np.asarray(L.position)
+        # distance from the centre to every patch (point-triangle, via the closest of centre / vertices / plane)
+        d_plane = np.abs(np.einsum("ij,ij->i", c - self.pc, self.pn))
+        near = np.linalg.norm(self.pc - c, axis=1) < 2 * np.sqrt(self.area) + L.radius
+        if (near & (d_plane < L.radius)).any():
+            raise InputError(f"{where}: light at {list(L.position)} (radius {L.radius}) is inside a surface of room.obj",
+                             param="lights")
+
+    def _geometry(self, L: Light) -> tuple[np.ndarray, np.ndarray]:
+        """Irradiance per watt of a light: (pixels,), (patches,), cached."""
+        g = self._geo.get(L)
+        if g is None:
+            g = (self._irradiance(L, self.X, self.N), self._irradiance(L, self.pc, self.pn))
+            self._geo[L] = g
+        return g
+
+    def _irradiance(self, L: Light, P: np.ndarray, N: np.ndarray) -> np.ndarray:
+        """Irradiance per watt at points ``P`` with normals ``N``: a uniformly emitting sphere's
+        field is its centre's, ``1 / (4 pi d^2)`` at distance d; the cosine and the visibility
+        averaged over the points of the cap facing the receiver (of ``light_samples`` x 2
+        Fibonacci points on the sphere), one shadow ray each, so a sphere partly below a
+        receiver's horizon or partly hidden lights it partly."""
+        m = self.light_samples
+        k = np.arange(2 * m) + 0.5
+        z = 1 - 2 * k / (2 * m)
+        ph = k * math.pi * (3 - math.sqrt(5))
+        u = np.stack([np.sqrt(1 - z * z) * np.cos(ph), z, np.sqrt(1 - z * z) * np.sin(ph)], 1)
+        c = np.asarray(L.position)
+        toc = c - P
+        dc = np.linalg.norm(toc, axis=1)
+        cos_c = np.einsum("ij,ij->i", N, toc) / np.maximum(dc, 1e-12)
+        facing = (-toc / np.maximum(dc, 1e-12)[:, None]) @ u.T > 0      # the cap each receiver sees
+        S = c + L.radius * u
+        free = np.zeros(len(P))
+        cnt = np.zeros(len(P))
+        for j in range(len(u)):
+            sel = np.flatnonzero(facing[:, j] & (cos_c > -L.radius / np.maximum(dc, 1e-12)))
+            if not len(sel):
+                continue
+            w = S[j] - P[sel]
+            dj = np.linalg.norm(w, axis=1)
+            wd = w / dj[:, None]
+            cj = np.einsum("ij,ij->i", N[sel], wd)
+            up = cj > 0
+            occ = np.ones(len(sel), bool)
+            s_up = sel[up]
+            occ[up] = self._occluded(P[s_up] + self.eps * N[s_up], wd[up], dj[up] - 2 * self.eps)
+            free[sel] += np.where(occ, 0.0, np.maximum(cj, 0.0))
+            cnt[sel] += 1
+        # cosine per sample (a sphere across the horizon lights the receiver partly), distance
+        # to the centre (the sphere's field; distances to its surface points overstate it)
+        return np.where(cnt > 0, free / np.maximum(cnt, 1), 0.0) / (4 * math.pi * np.maximum(dc, 1e-12) ** 2)
+
+    def _occluded(self, o: np.ndarray, d: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+        if not len(o):
+            return np.zeros(0, bool)
+        r = self._es.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
+                         dists=np.ascontiguousarray(np.maximum(tfar, 0), np.float32), query="OCCLUDED")
+        return np.asarray(r) == 0
+
+    def form_factors(self) -> np.ndarray:
+        """(P, P) form factors from each patch centre to every patch: the exact unoccluded polygon
+        form factor, zero when the ray between the centres is blocked."""
+        if self._F is None:
+            pc, pn = self.pc, self.pn
+            P = len(pc)
+            F = np.zeros((P, P), np.float32)
+            for s in range(0, P, 256):
+                rows = np.arange(s, min(P, s + 256))
+                w = pc[None] - pc[rows, None]                    # (r, P, 3)
+                d2 = np.einsum("rpk,rpk->rp", w, w)
+                d = np.sqrt(np.maximum(d2, 1e-300))
+                wd = w / d[..., None]
+                ci = np.einsum("rpk,rk->rp", wd, pn[rows])
+                cj = -np.einsum("rpk,pk->rp", wd, pn)
+                ff = np.where((ci > 0) & (cj > 0), self._polygon_ff(rows), 0.0)
+                ff[np.arange(len(rows)), rows] = 0.0
+                ri, ci_ = np.nonzero(ff > 0)
+                occ = self._occluded(pc[rows[ri]] + self.eps * pn[rows[ri]], wd[ri, ci_], d[ri, ci_] - 2 * self.eps)
+                ff[ri[occ], ci_[occ]] = 0.0       # (4 rays per pair instead of 1: no better on the Cornell box)
+                F[rows] = ff
+            tot = F.sum(axis=1, keepdims=True)
+            self._F = F / np.maximum(tot, 1.0)                    # energy: a patch sees at most its hemisphere
+        return self._F
+
+    def _polygon_ff(self, rows: np.ndarray) -> np.ndarray:
+        """(r, P) unoccluded form factors from the centres of patches ``rows`` to every patch
+        triangle, exact for a triangle above the receiver's horizon (Lambert's contour integral:
+        ``1 / 2 pi sum_edges angle_i n . (R_i x R_i+1) / |R_i x R_i+1|``); near patches, where a
+        point-to-point form factor fails, get their true share."""
+        x, n = self.pc[rows], self.pn[rows]
+        V = [self.v[self.f[:, k]] for k in range(3)]
+        R = [V[k][None] - x[:, None] for k in range(3)]
+        R = [r / np.maximum(np.linalg.norm(r, axis=-1, keepdims=True), 1e-300) for r in R]
+        acc = np.zeros((len(rows), len(self.f)))
+        for k in range(3):
+            a, b = R[k], R[(k + 1) % 3]
+            cr = np.cross(a, b)
+            ln = np.linalg.norm(cr, axis=-1)
+            ang = np.arccos(np.clip(np.einsum("rpk,rpk->rp", a, b), -1, 1))
+            acc += ang * np.einsum("rpk,rk->rp", cr, n) / np.maximum(ln, 1e-300)
+        return np.abs(acc) / (2 * math.pi)
+
+    def _solve(self, Ed_patch: np.ndarray, rho_patch: np.ndarray, known: np.ndarray | None = None,
+               B_known: np.ndarray | None = None, iters: int = 40) -> np.ndarray:
+        """Patch radiance (P, 3) of ``B = rho / pi (E_d + pi F B)``, measured patches held fixed."""
+        F = self.form_factors()
+        B = rho_patch / math.pi * Ed_patch
+        if known is not None and B_known is not None:
+            B[known] = B_known[known]
+        for _ in range(iters):       # Jacobi; stops when a sweep changes B by under 1e-5 of its max
+            nb = rho_patch / math.pi * (Ed_patch + math.pi * (F @ B))
+            if known is not None and B_known is not None:
+                nb[known] = B_known[known]
+            done = float(np.abs(nb - B).max()) <= 1e-5 * max(float(np.abs(nb).max()), 1e-300)
+            B = nb
+            if done:
+                break
+        return B
+
+    # ---- recovery ------------------------------------------------------------------------------
+    def _in_view_of_lights(self, lights: list[Light]) -> np.ndarray:
+        """Pixels whose camera ray passes within a pixel and a half of a light sphere in front of
+        the surface (its image, antialiased, covers neighbours too)."""
+        C = self.cam.center
+        ray = self.X - C
+        dist = np.linalg.norm(ray, axis=1)
+        rd = ray / dist[:, None]
+        hit = np.zeros(len(self.X), bool)
+        for L in lights:
+            oc = np.asarray(L.position) - C
+            tc = rd @ oc
+            d2 = oc @ oc - tc * tc
+            reach = 1.05 * L.radius + 1.5 * tc / self.cam.K[1, 1]   # a pixel and a half of margin
+            hit |= (d2 < reach ** 2) & (tc > 0) & (tc < dist)
+        return hit
+
+    def recover(self, *, filters: bool = True, passes: int = 3, indirect: bool = True) -> np.ndarray:
+        """Reflectance (H, W, 3) (0 where the camera sees no geometry); sets ``reflectance``
+        (pixels, 3), ``confidence`` (pixels,) and ``patch_reflectance``. ``indirect=False``
+        treats all light as direct (a diagnostic: right only for a room with black walls)."""
+        from device.core.imageio import read_hdr_image
+
+        if not self.captures:
+            raise InputError("captures/: no NAME.exr with NAME.json", param="captures")
+        H, W = self.cam.height, self.cam.width
+        shots = []
+        for name, p, lights in self.captures:
+            img = read_hdr_image(p)
+            if img.shape[:2] != (H, W):
+                raise InputError(f"{p}: {img.shape[1]} x {img.shape[0]} pixels, camera.json says {W} x {H}", param="captures")
+            B = np.nan_to_num(np.asarray(img, np.float64)[self.cover], nan=0.0, posinf=0.0).clip(0, None)
+            Ed_pix = np.sum([np.outer(self._geometry(L)[0], L.rgb) for L in lights], axis=0)
+            Ed_patch = np.sum([np.outer(self._geometry(L)[1], L.rgb) for L in lights], axis=0)
+            shots.append((name, B, Ed_pix, Ed_patch, ~self._in_view_of_lights(lights)))
+        P = len(self.f)
+        ng = len(self.group_names)
+        rho_group = np.full((ng, 3), 0.5)
+        cnt = np.bincount(self.patch, minlength=P)
+        seen = cnt > 0
+        rho = np.zeros((len(self.X), 3))
+        conf = np.zeros(len(self.X))
+        for _ in range(passes):
+            rho_patch = rho_group[self.fgroup]
+            if self.patch_reflectance is not None:
+                rho_patch = np.where(seen[:, None], self.patch_reflectance, rho_patch)
+            est, wts = [], []
+            for _name, B, Ed_pix, Ed_patch, usable in shots:
+                Bm = np.zeros((P, 3))
+                for ch in range(3):
+                    Bm[:, ch] = np.bincount(self.patch[usable], B[usable, ch], minlength=P)
+                cu = np.bincount(self.patch[usable], minlength=P)
+                known = cu > 0
+                Bm[known] /= cu[known, None]
+                Bp = self._solve(Ed_patch, rho_patch, known, Bm)
+                Ei = math.pi * (self.form_factors() @ Bp)[self.patch] if indirect else np.zeros_like(Ed_pix)
+                den = Ed_pix + Ei
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    rk = np.where(den > 1e-12, math.pi * B / den, 0.0)
+                w = luminance(Ed_pix) / np.maximum(luminance(den), 1e-300)
+                w = np.where(usable & (luminance(den) > 1e-12), w, 0.0)
+                est.append(rk)
+                wts.append(w)
+            R = np.stack(est)                # (k, n, 3)
+            Wt = np.stack(wts)               # (k, n)
+            if filters and len(R) >= 3:
+                lr = np.where(Wt > 0, luminance(R), np.nan)
+                n_ok = (Wt > 0).sum(axis=0)
+                with np.errstate(all="ignore"):
+                    import warnings
+
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", RuntimeWarning)   # pixels no capture lights
+                        lm = np.nanmedian(lr, axis=0)
+                dev = np.abs(luminance(R) - lm[None]) > OUTLIER * np.abs(lm[None])
+                Wt = np.where(dev & (n_ok[None] >= 3), 0.0, Wt)       # the median needs 3 votes
+            tot = Wt.sum(axis=0)
+            rho = np.where(tot[:, None] > 0, (Wt[..., None] * R).sum(axis=0) / np.maximum(tot, 1e-300)[:, None], 0.0)
+            conf = tot / len(R)
+            if filters:
+                rho = self._smooth(rho, conf)
+            for g in range(ng):
+                sel = (self.group == g) & (conf > 0)
+                if sel.any():
+                    rho_group[g] = np.median(rho[sel], axis=0)
+            self._set_patch_reflectance(rho, conf, rho_group)
+        self.reflectance, self.confidence = rho, conf
+        return self._image(rho)
+
+    def use_reflectance(self, reflectance: np.ndarray, confidence: np.ndarray) -> None:
+        """Take a recovered reflectance (H, W, 3) and confidence (H, W) (``reflectance.exr``,
+        ``confidence.exr`` of :meth:`recover`) instead of recovering again."""
+        H, W = self.cam.height, self.cam.width
+        r, c = np.asarray(reflectance, np.float64), np.asarray(confidence, np.float64)
+        if r.shape[:2] != (H, W) or c.shape[:2] != (H, W):
+            raise InputError(f"reflectance and confidence must be {W} x {H} (camera.json), got "
+                             f"{r.shape[1]} x {r.shape[0]}", param="reflectance")
+        rho = np.nan_to_num(r[self.cover][:, :3]).clip(0, None)
+        conf = np.nan_to_num(c[self.cover] if c.ndim == 2 else c[self.cover][:, 0]).clip(0, None)
+        ng = len(self.group_names)
+        rho_group = np.full((ng, 3), 0.5)
+        for g in range(ng):
+            sel = (self.group == g) & (conf > 0)
+            if sel.any():
+                rho_group[g] = np.median(rho[sel], axis=0)
+        self._set_patch_reflectance(rho, conf, rho_group)
+        self.reflectance, self.confidence = rho, conf
+
+    def _set_patch_reflectance(self, rho: np.ndarray, conf: np.ndarray, rho_group: np.ndarray) -> None:
+        P = len(self.f)
+        pr = np.zeros((P, 3))
+        cw = np.bincount(self.patch, conf, minlength=P)
+        for ch in range(3):
+            pr[:, ch] = np.bincount(self.patch, rho[:, ch] * conf, minlength=P)
+        ok = cw > 0
+        pr[ok] /= cw[ok, None]
+        pr[~ok] = rho_group[self.fgroup[~ok]]
+        self.patch_reflectance = pr
+
+    def confidence_image(self) -> np.ndarray:
+        img = np.zeros((self.cam.height, self.cam.width), np.float32)
+        if self.confidence is not None:
+            img[self.cover] = self.confidence
+        return img
+
+    def _smooth(self, rho: np.ndarray, conf: np.ndarray) -> np.ndarray:
+        """3 x 3 confidence-weighted smoothing within each group (the paper's last filter)."""
+        H, W = self.cam.height, self.cam.width
+        img = np.zeros((H, W, 3))
+        cf = np.zeros((H, W))
+        gr = np.full((H, W), -1)
+        img[self.cover], cf[self.cover], gr[self.cover] = rho, conf, self.group
+        acc = np.zeros_like(img)
+        wsum = np.zeros((H, W))
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                si = np.roll(np.roll(img, dy, 0), dx, 1)
+                sc = np.roll(np.roll(cf, dy, 0), dx, 1)
+                sg = np.roll(np.roll(gr, dy, 0), dx, 1)
+                w = np.where(sg == gr, sc, 0.0)
+                acc += w[..., None] * si
+                wsum += w
+        out = np.where(wsum[..., None] > 0, acc / np.maximum(wsum, 1e-300)[..., None], img)
+        return np.asarray(out[self.cover])
+
+    def _image(self, per_pixel: np.ndarray) -> np.ndarray:
+        img = np.zeros((self.cam.height, self.cam.width, 3), np.float32)
+        img[self.cover] = per_pixel
+        return img
+
+    # ---- relighting ----------------------------------------------------------------------------
+    def render(self, lights: list[Light]) -> np.ndarray:
+        """The room (H, W, 3) radiance under ``lights`` with the recovered reflectance."""
+        if self.reflectance is None or self.patch_reflectance is None:
+            self.recover()
+        if self.reflectance is None or self.patch_reflectance is None:
+            raise InputError("no reflectance: recover() first", param="reflectance")
+        for L in lights:
+            self._check_light(L, Path("edit"))
+        # light is linear: per light geometry (position, radius), the irradiance per watt of each
+        # channel, direct + indirect through the radiosity solve, is cached; a power change is a sum
+        key = self.patch_reflectance.tobytes()
+        if self._unit_key != key:
+            self._unit, self._unit_key = {}, key
+        acc = np.zeros((len(self.X), 3))
+        for L in lights:
+            geo = Light(L.position, L.radius, (1.0, 1.0, 1.0))
+            u = self._unit.get(geo)
+            if u is None:
+                gp, gq = self._geometry(geo)
+                Bp = self._solve(np.repeat(gq[:, None], 3, axis=1), self.patch_reflectance)
+                u = self._unit[geo] = gp[:, None] + math.pi * (self.form_factors() @ Bp)[self.patch]
+            acc += u * np.asarray(L.rgb)
+        return self._image(self.reflectance / math.pi * acc)
+
+    def true_groups(self) -> np.ndarray:
+        """(H, W) group index per pixel, -1 where there is no geometry (for tests and tools)."""
+        g = np.full((self.cam.height, self.cam.width), -1, np.int64)
+        g[self.cover] = self.group
+        return g

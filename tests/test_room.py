@@ -1,0 +1,221 @@
+"""Relighting the real room (hostlink.room, Loscos et al. 1999) against Mitsuba 3 as the truth.
+
+The room: the shared Cornell box (in metres; per-surface albedo known), photographed by Mitsuba's
+path tracer (8 bounces, 256 samples, 96 x 72; the edits' truth 1024) from one camera under a small spherical light at 5
+positions: the captures. Recovery is scored per pixel against the true albedo of the surface the
+pixel shows; edits against Mitsuba's render of the edited room, over the room's surfaces (pixels
+showing a light sphere left out). Measured 2026-12-04 (BENCHMARKS.md, issue 18): albedo median
+5.4%, edits 6.5-6.6%; the bounds below are those with a margin, the issue's targets (3%, 5%) are
+not met.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device.core.errors import InputError
+
+pytestmark = pytest.mark.slow
+
+W, H, SPP = 96, 72, 256
+ALBEDO = {"white": [0.7, 0.7, 0.7], "red": [0.63, 0.065, 0.05], "green": [0.14, 0.45, 0.09],
+          "light": [0.78, 0.78, 0.78]}
+CAPTURES = [[0.15, 0.45, 0.20], [0.42, 0.45, 0.20], [0.28, 0.30, 0.10], [0.12, 0.20, 0.40], [0.45, 0.25, 0.45]]
+EYE, TARGET = np.array([0.278, 0.273, -0.80]), np.array([0.278, 0.273, 0.28])
+FOV = 39.3
+
+
+def _lamp(p: list[float], rgb: list[float]) -> dict:
+    return {"position": p, "radius": 0.02, "rgb": rgb}
+
+
+def _mitsuba(d: Path, mats: dict[str, str], lights: list[dict], seed: int, spp: int = SPP) -> np.ndarray:
+    import mitsuba as mi
+
+    from hostlink.relight.scene import load_obj_groups
+
+    mi.set_variant("scalar_rgb")
+    mesh, fg, names = load_obj_groups(d / "room.obj")
+    shapes: dict[str, dict] = {}
+    for g, name in enumerate(names):
+        if not (fg == g).any():
+            continue
+        lines = [f"v {a:.9g} {b:.9g} {c:.9g}" for a, b, c in mesh.vertices] + \
+                [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces[fg == g]]
+        (d / f"_mi_{name}.obj").write_text("\n".join(lines) + "\n")
+        shapes[name] = {"type": "obj", "filename": str(d / f"_mi_{name}.obj"), "face_normals": True,
+                        "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse",
+                                                               "reflectance": {"type": "rgb", "value": ALBEDO[mats[name]]}}}}
+    for i, L in enumerate(lights):     # a sphere of power rgb: radiance rgb / (4 pi^2 r^2)
+        r = L["radius"]
+        shapes[f"lamp{i}"] = {"type": "sphere", "center": L["position"], "radius": r,
+                              "emitter": {"type": "area", "radiance": {"type": "rgb",
+                                                                       "value": [c / (4 * math.pi ** 2 * r * r) for c in L["rgb"]]}}}
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 8},
+        "sensor": {"type": "perspective", "fov": FOV, "fov_axis": "y",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=EYE.tolist(), target=TARGET.tolist(), up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                   "sampler": {"type": "independent", "sample_count": spp}}, **shapes})
+    return np.array(mi.render(scene, seed=seed), np.float32)
+
+
+@pytest.fixture(scope="module")
+def room_dir(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
+    from device.core.imageio import write_exr
+
+    d = tmp_path_factory.mktemp("room")
+    (d / "captures").mkdir()
+    lines, mats, cur = [], {}, ""
+    for line in (shared_data / "meshes" / "cornell_box.obj").read_text().splitlines():
+        p = line.split("#", 1)[0].split()
+        if not p:
+            continue
+        if p[0] == "v":
+            lines.append(f"v {float(p[1]) / 1000} {float(p[2]) / 1000} {float(p[3]) / 1000}")
+        elif p[0] == "o":
+            cur = p[1]
+            lines.append(f"o {cur}")
+        elif p[0] == "usemtl":
+            mats[cur] = p[1]
+        elif p[0] == "f":
+            lines.append(" ".join(p))
+    (d / "room.obj").write_text("\n".join(lines) + "\n")
+    f = (TARGET - EYE) / np.linalg.norm(TARGET - EYE)
+    x = np.cross(f, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(f, x), f])              # OpenCV: x right, y down, z forward
+    fy = (H / 2) / math.tan(math.radians(FOV) / 2)
+    (d / "camera.json").write_text(json.dumps({"K": [[fy, 0, W / 2 - 0.5], [0, fy, H / 2 - 0.5], [0, 0, 1]],
+                                               "R": R.tolist(), "t": (-R @ EYE).tolist(), "width": W, "height": H}))
+    for k, pos in enumerate(CAPTURES):
+        lights = [_lamp(pos, [2.0, 2.0, 2.0])]
+        write_exr(d / "captures" / f"c{k}.exr", _mitsuba(d, mats, lights, k))
+        (d / "captures" / f"c{k}.json").write_text(json.dumps({"lights": lights}))
+    return d, mats
+
+
+@pytest.fixture(scope="module")
+def recovered(room_dir):  # type: ignore[no-untyped-def]
+    from hostlink.room.room import Room
+
+    d, mats = room_dir
+    room = Room(d)
+    refl = room.recover()
+    g = room.true_groups()
+    truth = np.zeros_like(refl)
+    for k, name in enumerate(room.group_names):
+        if mats.get(name) in ALBEDO:       # the front wall (blue) has no faces: the open side
+            truth[g == k] = ALBEDO[mats[name]]
+    return room, refl, truth, g >= 0
+
+
+def _lum_err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    from device.core.sphere import luminance
+
+    return np.abs(luminance(a) - luminance(b)) / luminance(b)
+
+
+def test_reflectance_from_the_captures(room_dir, recovered) -> None:  # type: ignore[no-untyped-def]
+    from hostlink.room.room import Room
+
+    room, refl, truth, m = recovered
+    err = _lum_err(refl[m].astype(np.float64), truth[m])
+    print(f"albedo error: median {np.median(err):.4f}, p95 {np.percentile(err, 95):.4f}")
+    assert np.median(err) <= 0.07
+    for name in ("red_wall", "green_wall"):       # colour survives: the walls keep their hue
+        s = room.true_groups() == room.group_names.index(name)
+        med = np.median(refl[s], axis=0)
+        want = np.array(ALBEDO["red" if name == "red_wall" else "green"])
+        np.testing.assert_allclose(med / med.sum(), want / want.sum(), atol=0.03)
+    plain = Room(room_dir[0])
+    raw = plain.recover(filters=False)
+    err_raw = _lum_err(raw[m].astype(np.float64), truth[m])
+    print(f"without filters: median {np.median(err_raw):.4f}, p95 {np.percentile(err_raw, 95):.4f}")
+    assert np.percentile(err, 95) < np.percentile(err_raw, 95)
+
+
+@pytest.mark.parametrize("edit", ["first light x2 with the second", "a light added"])
+def test_edits_against_mitsuba(room_dir, recovered, edit: str) -> None:  # type: ignore[no-untyped-def]
+    from device.core.sphere import luminance
+    from hostlink.room.room import Light
+
+    d, mats = room_dir
+    room = recovered[0]
+    lights = ([_lamp(CAPTURES[0], [4.0, 4.0, 4.0]), _lamp(CAPTURES[1], [2.0, 2.0, 2.0])] if edit.endswith("second")
+              else [_lamp(CAPTURES[0], [2.0, 2.0, 2.0]), _lamp([0.35, 0.12, 0.15], [1.0, 1.5, 2.0])])
+    truth = _mitsuba(d, mats, lights, 99, 4 * SPP).astype(np.float64)   # the truth less noisy than a capture
+    Ls = [Light(tuple(L["position"]), L["radius"], tuple(L["rgb"])) for L in lights]
+    img = room.render(Ls).astype(np.float64)
+    m = room.cover.copy()
+    m[room.cover] &= ~room._in_view_of_lights(Ls)
+    y, yr = luminance(img[m]), luminance(truth[m])
+    err = float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
+    print(f"{edit}: relative RMSE {err:.4f}")
+    assert err <= 0.09
+
+
+def test_cli_recover_render_and_bad_input(room_dir, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    import shutil
+
+    import cv2
+
+    d = tmp_path / "room"
+    shutil.copytree(room_dir[0], d)
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "device.cli", "room", *args], capture_output=True, text=True,
+                              timeout=600, cwd=Path(__file__).parents[1])
+
+    r = run("recover", str(d))
+    assert r.returncode == 0, r.stderr
+    assert (d / "reflectance.exr").is_file()
+    assert (d / "confidence.exr").is_file()
+    (d / "edit.json").write_text(json.dumps({"lights": [_lamp([0.3, 0.4, 0.25], [3.0, 3.0, 3.0])]}))
+    r = run("render", str(d), "--edit", str(d / "edit.json"), "--out", str(tmp_path / "edit.png"))
+    assert r.returncode == 0, r.stderr
+    assert cv2.imread(str(tmp_path / "edit.png")).shape == (H, W, 3)
+    # bad input: each exits 2 and names the file
+    (d / "edit.json").write_text(json.dumps({"lights": [_lamp([0.3, 0.0, 0.25], [3.0, 3.0, 3.0])]}))  # in the floor
+    r = run("render", str(d), "--edit", str(d / "edit.json"), "--out", str(tmp_path / "x.png"))
+    assert r.returncode == 2
+    assert "inside a surface" in r.stderr
+    (d / "captures" / "c1.json").unlink()
+    r = run("recover", str(d))
+    assert r.returncode == 2
+    assert "c1.json: missing" in r.stderr
+    (d / "captures" / "c1.json").write_text(json.dumps({"lights": [_lamp([0.3, 0.4, 0.25], [1.0, 1.0, 1.0])]}))
+    cam = json.loads((d / "camera.json").read_text())
+    cam["t"] = [0.0, 0.0, -5.0]                          # looking away from the room
+    cam["R"] = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]
+    (d / "camera.json").write_text(json.dumps(cam))
+    r = run("recover", str(d))
+    assert r.returncode == 2
+    assert "camera.json: the camera sees no geometry" in r.stderr
+
+
+def test_loading_refuses_bad_cameras_and_lights(tmp_path: Path) -> None:
+    from hostlink.room.room import load_camera, load_lights
+
+    (tmp_path / "c.json").write_text(json.dumps({"K": [[1, 0, 0], [0, 1, 0]], "R": np.eye(3).tolist(), "t": [0, 0, 0],
+                                                  "width": 4, "height": 4}))
+    with pytest.raises(InputError, match=r"c\.json: .K. must be a finite 3x3") as e:
+        load_camera(tmp_path / "c.json")
+    assert e.value.param == "K"
+    (tmp_path / "c.json").write_text(json.dumps({"K": np.eye(3).tolist(), "R": (2 * np.eye(3)).tolist(), "t": [0, 0, 0],
+                                                  "width": 4, "height": 4}))
+    with pytest.raises(InputError, match="'R' must be a rotation"):
+        load_camera(tmp_path / "c.json")
+    (tmp_path / "l.json").write_text(json.dumps({"lights": [{"position": [0, 0, 0], "radius": -1, "rgb": [1, 1, 1]}]}))
+    with pytest.raises(InputError, match="radius > 0"):
+        load_lights(tmp_path / "l.json")
+    (tmp_path / "l.json").write_text("{")
+    with pytest.raises(InputError, match=r"l\.json:1: invalid JSON"):
+        load_lights(tmp_path / "l.json")
