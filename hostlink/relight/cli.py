@@ -37,6 +37,16 @@ def _lightset_from_json(doc: Any, where: str):  # type: ignore[no-untyped-def]
         raise InputError(f"{where}: not a light-set JSON ({e})", param="--lights") from None
 
 
+def _read_json(p: Path) -> Any:
+    """A ``--lights`` JSON file; unreadable or invalid JSON is an InputError naming it (and the line)."""
+    try:
+        return json.loads(p.read_text())
+    except OSError as e:
+        raise InputError(f"{p}: cannot read ({e.strerror})", param="--lights") from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{p}:{e.lineno}: invalid JSON ({e.msg})", param="--lights") from None
+
+
 def _fetch(url: str, token: str | None) -> tuple[bytes, str]:
     import asyncio
 
@@ -81,13 +91,7 @@ def load_lights(src: str, token: str | None = None) -> tuple[str, Any]:
             raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
     p = Path(src)
     if p.suffix.lower() == ".json":
-        try:
-            doc = json.loads(p.read_text())
-        except OSError as e:
-            raise InputError(f"{p}: cannot read ({e.strerror})", param="--lights") from None
-        except json.JSONDecodeError as e:
-            raise InputError(f"{p}:{e.lineno}: invalid JSON ({e.msg})", param="--lights") from None
-        return "lights", _lightset_from_json(doc, str(p))
+        return "lights", _lightset_from_json(_read_json(p), str(p))
     if p.suffix.lower() not in (".exr", ".hdr"):
         raise InputError(f"{p}: --lights must be a URL, .exr, .hdr or .json", param="--lights")
     return "map", read_hdr_image(p)
@@ -130,13 +134,7 @@ def _sg_lights(src: str, token: str | None) -> tuple[str, Any]:
             raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
     p = Path(src)
     if p.suffix.lower() == ".json":
-        try:
-            doc = json.loads(p.read_text())
-        except OSError as e:
-            raise InputError(f"{p}: cannot read ({e.strerror})", param="--lights") from None
-        except json.JSONDecodeError as e:
-            raise InputError(f"{p}:{e.lineno}: invalid JSON ({e.msg})", param="--lights") from None
-        return "sg", parse(doc, str(p))
+        return "sg", parse(_read_json(p), str(p))
     return load_lights(src, token)
 
 

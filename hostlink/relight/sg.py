@@ -214,14 +214,14 @@ class SGRelighter:
 
     def __init__(self, scene: Scene, *, visibility: str = "voxels", voxels: int = 128,
                  cone_gain: float = 1.0, cone_start: float = 2.0, cone_lift: float = 1.5,
-                 cone_footprint: float = 0.2, solid: bool = False) -> None:
+                 cone_footprint: float = 0.2) -> None:
         if visibility not in ("voxels", "rays"):
             raise InputError(f"visibility must be 'voxels' or 'rays', got {visibility!r}", param="visibility")
         if voxels < 8 or voxels > 1024 or voxels & (voxels - 1):
             raise InputError(f"voxels must be a power of two in [8, 1024], got {voxels!r}", param="voxels")
         self.scene, self.visibility, self.R = scene, visibility, int(voxels)
         self.cone_gain, self.cone_start, self.cone_lift = cone_gain, cone_start, cone_lift
-        self.cone_footprint, self.solid = cone_footprint, solid
+        self.cone_footprint = cone_footprint
         names = list(scene.materials)
         for n in names:
             if scene.materials[n].type not in ("lambert", "phong"):
@@ -256,7 +256,6 @@ class SGRelighter:
         self._embree: Any = None
         self._geometry = 0          # bumped by every deformation or move
         self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
-        self.stats: dict[str, float] = {}
 
     # ---- lighting ----------------------------------------------------------------------------
     def set_equirect(self, img: np.ndarray) -> None:
@@ -388,11 +387,7 @@ class SGRelighter:
                 ob = self.objects[k]
                 occ = np.zeros(R ** 3, np.uint8)
                 voxelize(self.vertices[ob.base:ob.base + len(ob.rest)], ob.faces, self.origin, self.vox, R, occ)
-                # closed meshes are solid: a cone through a shell must see the body, not two walls
-                from scipy.ndimage import binary_fill_holes
-
-                if self.solid:
-                    occ = binary_fill_holes(occ.reshape(R, R, R)).astype(np.uint8).ravel()
+                # surfaces only (filling closed meshes' interiors was tried: worse, self-occlusion)
                 self._occ[k] = occ
             self._dirty.clear()
             tot = np.zeros(R ** 3, np.uint8)
@@ -402,7 +397,8 @@ class SGRelighter:
             self._pyr = anisotropic_pyramid(tot.reshape(R, R, R))
         return self._pyr
 
-    def _cone_dirs(self, pos: np.ndarray, nrm: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _cone_dirs(self, pos: np.ndarray, nrm: np.ndarray, wo: np.ndarray,
+                   matid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(n, 7 + 1 + P, 3) axes and (n, 8 + P) tan(half-angle): 7 diffuse cones, the
         reflection cone (its Phong lobe's half-angle, per material), one per peak lobe."""
         pax, plam = self._peaks[0], self._peaks[1]
@@ -416,12 +412,10 @@ class SGRelighter:
         dirs[:, 8:] = pax[None]
         tan = np.empty((n, 8 + len(plam)))
         tan[:, :7] = math.tan(CONE_HALF)
-        e = self.mats[self._matid_rows, 7]
+        e = self.mats[np.asarray(matid, np.int64), 7]
         tan[:, 7] = np.tan(np.arccos(np.clip(1 - math.log(2) / np.maximum(e, 1.0), -1, 1)))
         tan[:, 8:] = self._peak_half_tan()[None]
         return dirs, tan
-
-    _matid_rows: np.ndarray = np.zeros(0, np.int64)
 
     def _trace(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray, first: int = 0) -> np.ndarray:
         """Transmittance of the cones ``dirs[:, j]`` (cone ``first + j`` of the layout: 0-6
@@ -569,8 +563,7 @@ class SGRelighter:
     def _visibility_rows(self, matid: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
                          wo: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(cones (n, 7, 3), vis7 (n, 7), vspec (n,), vpeak (n, P)) of points."""
-        self._matid_rows = np.asarray(matid, np.int64)
-        dirs, tan = self._cone_dirs(pos, nrm, wo)
+        dirs, tan = self._cone_dirs(pos, nrm, wo, matid)
         out = self._trace(pos, nrm, dirs, tan)
         return dirs[:, :7].copy(), out[:, :7].copy(), out[:, 7].copy(), out[:, 8:].copy()
 
@@ -636,8 +629,7 @@ class SGRelighter:
             vp, vn = self.vertices[vis_v], self._normals[vis_v]
             wo = eye - vp
             wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
-            self._matid_rows = self.matid[vis_v]
-            dirs, tan = self._cone_dirs(vp, vn, wo)
+            dirs, tan = self._cone_dirs(vp, vn, wo, self.matid[vis_v])
             wide = np.zeros((len(self.vertices), 8))
             wide[vis_v] = self._trace(vp, vn, dirs[:, :8], tan[:, :8])
             traced["wide_cones"] = float(8 * len(vis_v))

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -434,23 +435,18 @@ class Room:
             if filters and len(R) >= 3:
                 lr = np.where(Wt > 0, luminance(R), np.nan)
                 n_ok = (Wt > 0).sum(axis=0)
-                with np.errstate(all="ignore"):
-                    import warnings
-
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore", RuntimeWarning)   # pixels no capture lights
-                        lm = np.nanmedian(lr, axis=0)
-                dev = np.abs(luminance(R) - lm[None]) > OUTLIER * np.abs(lm[None])
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)   # pixels no capture lights: NaN
+                    lm = np.nanmedian(lr, axis=0)
+                with np.errstate(invalid="ignore"):
+                    dev = np.abs(luminance(R) - lm[None]) > OUTLIER * np.abs(lm[None])
                 Wt = np.where(dev & (n_ok[None] >= 3), 0.0, Wt)       # the median needs 3 votes
             tot = Wt.sum(axis=0)
             rho = np.where(tot[:, None] > 0, (Wt[..., None] * R).sum(axis=0) / np.maximum(tot, 1e-300)[:, None], 0.0)
             conf = tot / len(R)
             if filters:
                 rho = self._smooth(rho, conf)
-            for g in range(ng):
-                sel = (self.group == g) & (conf > 0)
-                if sel.any():
-                    rho_group[g] = np.median(rho[sel], axis=0)
+            rho_group = self._group_reflectance(rho, conf, rho_group)
             self._set_patch_reflectance(rho, conf, rho_group)
         self.reflectance, self.confidence = rho, conf
         return self._image(rho)
@@ -465,14 +461,19 @@ class Room:
                              f"{r.shape[1]} x {r.shape[0]}", param="reflectance")
         rho = np.nan_to_num(r[self.cover][:, :3]).clip(0, None)
         conf = np.nan_to_num(c[self.cover] if c.ndim == 2 else c[self.cover][:, 0]).clip(0, None)
-        ng = len(self.group_names)
-        rho_group = np.full((ng, 3), 0.5)
-        for g in range(ng):
-            sel = (self.group == g) & (conf > 0)
-            if sel.any():
-                rho_group[g] = np.median(rho[sel], axis=0)
+        rho_group = self._group_reflectance(rho, conf, np.full((len(self.group_names), 3), 0.5))
         self._set_patch_reflectance(rho, conf, rho_group)
         self.reflectance, self.confidence = rho, conf
+
+    def _group_reflectance(self, rho: np.ndarray, conf: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """Each group's median reflectance over its trusted pixels (``prior`` where it has none):
+        what the patches the camera does not see take."""
+        out = prior.copy()
+        for g in range(len(self.group_names)):
+            sel = (self.group == g) & (conf > 0)
+            if sel.any():
+                out[g] = np.median(rho[sel], axis=0)
+        return out
 
     def _set_patch_reflectance(self, rho: np.ndarray, conf: np.ndarray, rho_group: np.ndarray) -> None:
         P = len(self.f)
