@@ -66,6 +66,15 @@ def _fetch(url: str, token: str | None) -> tuple[bytes, str]:
         raise InputError(f"{url}: cannot fetch ({e})", param="--lights") from None
 
 
+def _fetch_json(url: str, token: str | None) -> Any:
+    """A probe's JSON answer; a body that is not JSON is an InputError naming the URL."""
+    body, ctype = _fetch(url, token)
+    try:
+        return json.loads(body)
+    except json.JSONDecodeError:
+        raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
+
+
 def _lights_url(src: str) -> str:
     base = src.rstrip("/")
     if base.endswith(("probe.exr", "probe.hdr", "/lights")):
@@ -79,16 +88,13 @@ def load_lights(src: str, token: str | None = None) -> tuple[str, Any]:
 
     if src.startswith(("http://", "https://")):
         url = _lights_url(src)
-        body, ctype = _fetch(url, token)
         if url.endswith((".exr", ".hdr")):
+            body, _ctype = _fetch(url, token)
             with tempfile.NamedTemporaryFile(suffix=url[-4:]) as f:
                 f.write(body)
                 f.flush()
                 return "map", read_hdr_image(f.name)
-        try:
-            return "lights", _lightset_from_json(json.loads(body), url)
-        except json.JSONDecodeError:
-            raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
+        return "lights", _lightset_from_json(_fetch_json(url, token), url)
     p = Path(src)
     if p.suffix.lower() == ".json":
         return "lights", _lightset_from_json(_read_json(p), str(p))
@@ -127,11 +133,7 @@ def _sg_lights(src: str, token: str | None) -> tuple[str, Any]:
         if base.endswith(("probe.exr", "probe.hdr")):
             return load_lights(src, token)
         url = base if base.endswith("/sg") else (base + "/sg" if "/api/v1" in base else base + "/api/v1/sg")
-        body, ctype = _fetch(url, token)
-        try:
-            return "sg", parse(json.loads(body), url)
-        except json.JSONDecodeError:
-            raise InputError(f"{url}: response is not JSON ({ctype})", param="--lights") from None
+        return "sg", parse(_fetch_json(url, token), url)
     p = Path(src)
     if p.suffix.lower() == ".json":
         return "sg", parse(_read_json(p), str(p))

@@ -256,6 +256,7 @@ class SGRelighter:
         self._embree: Any = None
         self._geometry = 0          # bumped by every deformation or move
         self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
+        self._lighting = 0          # bumped by every set_sg
 
     # ---- lighting ----------------------------------------------------------------------------
     def set_equirect(self, img: np.ndarray) -> None:
@@ -304,6 +305,7 @@ class SGRelighter:
         pF = np.stack([c.zonal(float(x)) for x in pl]) if len(pl) else np.zeros((0, ZONAL_SAMPLES))
         self._peaks = (sg.axes[peak].copy(), pl.copy(), sg.amplitude[peak].copy(), pF)
         self.sg = sg
+        self._lighting += 1
 
     @staticmethod
     def _gloss_grid(e: float) -> int:
@@ -606,12 +608,15 @@ class SGRelighter:
 
         Cached between calls: the raster and the wide cones until the geometry or the camera
         changes, the peaks' cones until a peak's axis or sharpness changes; a light change whose
-        peaks stay put costs the direction tables and the per-pixel shading only."""
+        peaks stay put costs the direction tables and the per-pixel shading only (with voxels; the
+        rays weight the residual's visibility by its light, so with rays it re-traces the wide cones)."""
         from hostlink.relight.raster import lookup_equirect, rasterize, view_rays, visible_vertices
 
         cam = cam or self.scene.camera
+        # rays weight the residual's visibility by its light: with rays a light change re-traces too
         key = (self._geometry, tuple(np.asarray(cam.position, float)), tuple(np.asarray(cam.look_at, float)),
-               tuple(np.asarray(cam.up, float)), float(cam.fov_deg), int(cam.width), int(cam.height))
+               tuple(np.asarray(cam.up, float)), float(cam.fov_deg), int(cam.width), int(cam.height),
+               self._lighting if self.visibility == "rays" else 0)
         eye = np.asarray(cam.position, np.float64)
         f = self._frame
         traced = {"wide_cones": 0.0, "peak_cones": 0.0}

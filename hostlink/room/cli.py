@@ -56,7 +56,7 @@ def _render(a: argparse.Namespace) -> int:
         room.use_reflectance(read_hdr_image(refl), read_hdr_image(a.dir / "confidence.exr")[..., 0])
     else:
         room.recover()
-    img = room.render(lights)
+    img = room.render(lights, a.edit)
     write_image(out, img, mask=room.cover)
     if not a.quiet:
         print(f"room: wrote {out} ({len(lights)} lights, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)

@@ -225,7 +225,7 @@ class Room:
             for L in lights:
                 self._check_light(L, p.with_suffix(".json"))
             self.captures.append((p.stem, p, lights))
-        self._geo: dict[Light, tuple[np.ndarray, np.ndarray]] = {}
+        self._geo: dict[tuple[tuple[float, float, float], float], tuple[np.ndarray, np.ndarray]] = {}
         self._F: np.ndarray | None = None
         self._unit: dict[Light, np.ndarray] = {}
         self._unit_key: bytes | None = None
@@ -257,10 +257,11 @@ class Room:
 
     def _geometry(self, L: Light) -> tuple[np.ndarray, np.ndarray]:
         """Irradiance per watt of a light: (pixels,), (patches,), cached."""
-        g = self._geo.get(L)
+        key = (L.position, L.radius)          # the power does not change the geometry
+        g = self._geo.get(key)
         if g is None:
             g = (self._irradiance(L, self.X, self.N), self._irradiance(L, self.pc, self.pn))
-            self._geo[L] = g
+            self._geo[key] = g
         return g
 
     def _irradiance(self, L: Light, P: np.ndarray, N: np.ndarray) -> np.ndarray:
@@ -518,14 +519,15 @@ class Room:
         return img
 
     # ---- relighting ----------------------------------------------------------------------------
-    def render(self, lights: list[Light]) -> np.ndarray:
-        """The room (H, W, 3) radiance under ``lights`` with the recovered reflectance."""
+    def render(self, lights: list[Light], where: str | Path = "lights") -> np.ndarray:
+        """The room (H, W, 3) radiance under ``lights`` with the recovered reflectance; ``where``
+        names their source in errors (the EDITS.json file)."""
         if self.reflectance is None or self.patch_reflectance is None:
             self.recover()
         if self.reflectance is None or self.patch_reflectance is None:
             raise InputError("no reflectance: recover() first", param="reflectance")
         for L in lights:
-            self._check_light(L, Path("edit"))
+            self._check_light(L, Path(where))
         # light is linear: per light geometry (position, radius), the irradiance per watt of each
         # channel, direct + indirect through the radiosity solve, is cached; a power change is a sum
         key = self.patch_reflectance.tobytes()
