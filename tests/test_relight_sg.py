@@ -107,8 +107,9 @@ def test_zonal_cosine_matches_quadrature_and_limits() -> None:
 
 def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """A ground plane alone (nothing can shadow it): the host's tables give the lobes' own
-    irradiance within 0.5% with rays (voxels: 2%, the cones' self-shadowing of a plane, the classic
-    voxel-cone-tracing leak; measured up to 1.24%): the reference sums the
+    irradiance within 0.5% with rays and with voxels (a plane cannot hide anything above it from
+    its own points, so their cones are not traced: no voxel self-shadowing), measured 0.00-0.02%:
+    the reference sums the
     residual lobes' SG radiance on 2^15 directions and adds the peaks (too sharp for those
     directions: the sun is 0.5 deg) by their zonal integral, checked against quadrature above.
     What is left in the tests below is visibility and the probe's fit."""
@@ -141,13 +142,15 @@ def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp
             rl.set_sg(lobes[k])
             err = _rel_rms(rl.vertex_radiance(scene.camera.position, vidx), ref[k])
             print(vis, MAPS[k], f"{err:.4f}")
-            assert err <= (0.005 if vis == "rays" else 0.02), (vis, MAPS[k], err)
+            assert err <= 0.005, (vis, MAPS[k], err)
 
 
-# the issue's targets (3% / 5% with exact visibility, 12% Phong with voxels), and for Lambert with
-# voxels, whose 8% target is not met, the measured 11.7% with a margin (BENCHMARKS.md "Issue 17")
+# the issue's targets (3% / 5% with exact visibility, 8% / 12% with voxels), per map; Lambert with
+# voxels misses 8% on lebombo (a window, no peak) and dikhololo_night (lamps and a dark residual):
+# bounded by the measured 11.9% and 9.8% with a margin (BENCHMARKS.md "Issue 17, host side")
 BOUNDS = {("lambert", "rays"): 0.03, ("phong", "rays"): 0.05,
-          ("lambert", "voxels"): 0.13, ("phong", "voxels"): 0.12}
+          ("lambert", "voxels"): 0.08, ("phong", "voxels"): 0.12}
+MISSED = {("lambert", "voxels", "lebombo_1k.hdr"): 0.125, ("lambert", "voxels", "dikhololo_night_1k.hdr"): 0.105}
 
 
 @pytest.mark.parametrize("visibility", ["rays", "voxels"])
@@ -161,7 +164,8 @@ def test_spot_on_the_ground_under_every_map(spot, lobes, visibility: str) -> Non
         rl.set_sg(lobes[k])
         errs.append(_rel_rms(rl.vertex_radiance(scene.camera.position, vidx), ref[k]))
     print(clay, visibility, " ".join(f"{m}: {e:.4f}" for m, e in zip(MAPS, errs, strict=True)))
-    assert max(errs) <= BOUNDS[clay, visibility]
+    for m, e in zip(MAPS, errs, strict=True):
+        assert e <= MISSED.get((clay, visibility, m), BOUNDS[clay, visibility]), (m, e)
     assert min(errs) > 0
     if visibility == "voxels":   # cones approximate what the rays measure: never better than them
         rays = SGRelighter(scene, visibility="rays")
@@ -201,6 +205,66 @@ def test_a_deforming_mesh_keeps_its_accuracy_and_revoxelises_only_itself(spot, l
     assert e.value.param == "vertices"
     with pytest.raises(InputError, match="no object named 'cat'"):
         rl.move("cat", np.zeros(3))
+
+
+def test_shadow_rays_leave_out_only_the_planes_that_cannot_occlude(spot) -> None:  # type: ignore[no-untyped-def]
+    """The sun's shadow rays go up from the ground and the cow: the floor cannot occlude any of
+    them, so it is left out of their BVH, with the same answer as the full scene; a light below
+    the floor's horizon keeps it in."""
+    from hostlink.relight.precompute import occluded, scene_eps
+    from hostlink.relight.sg import SGRelighter
+
+    _clay, scene, _vidx, _leaf, _ref = spot
+    rl = SGRelighter(scene, visibility="voxels")
+    pos, nrm = rl.vertices, rl.normals()
+    ground = [k for k, o in enumerate(rl.objects) if o.name == "ground"]
+    assert [k for k, p in enumerate(rl._planes()) if p is not None] == ground
+    eps = scene_eps(scene)
+    for d, left_out in ((np.array([0.3, 0.8, -0.52]), True), (np.array([0.6, -0.2, 0.77]), False)):
+        d = d / np.linalg.norm(d)
+        got = rl._shadow_rays(pos, nrm, d)
+        up = nrm @ d > 0
+        full = np.zeros(len(pos))
+        full[up] = ~occluded(rl._embree_scene(), pos[up] + eps * nrm[up], np.broadcast_to(d, (int(up.sum()), 3)))
+        assert np.array_equal(got, full)
+        assert 0 < full.mean() < 1
+        o = pos[up] + eps * nrm[up]
+        assert (rl._occluders(o, d[None]) is rl._embree_scene(frozenset(ground))) == left_out
+
+
+def test_broad_peaks_render_soft_shadows_from_the_vertices(spot, lobes) -> None:  # type: ignore[no-untyped-def]
+    """studio_small_03's lamps (2-4 deg) are broad peaks: with voxels their shadows are 8 lobe
+    rays per vertex of the visible triangles, interpolated; the image agrees with the per-vertex
+    shading where pixels sit on vertices, and a light change re-traces nothing."""
+    from device.core.sg import SGLighting
+    from hostlink.relight.raster import rasterize
+    from hostlink.relight.sg import SGRelighter
+
+    _clay, scene, _vidx, _leaf, _ref = spot
+    rl = SGRelighter(scene, visibility="voxels")
+    rl.set_sg(lobes[0])
+    assert not rl._thin().any()
+    img, stats = rl.render()
+    assert np.isfinite(img).all()
+    assert stats["peak_cones"] > 0
+    vis = np.unique(rl._frame["fv"])
+    assert stats["peak_cones"] <= len(vis) * len(rl._thin())   # per vertex, not per pixel
+    ras = rasterize(scene.camera, rl.vertices, rl.faces, rays=False)
+    cov = ras.tri >= 0
+    corner = ras.bary[cov].max(axis=1) > 0.97   # pixels almost on a vertex
+    fv = rl.faces[ras.tri[cov]][corner]
+    v = fv[np.arange(len(fv)), ras.bary[cov][corner].argmax(axis=1)]
+    want = rl.vertex_radiance(scene.camera.position, v)
+    got = img[cov][corner]
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    rel = np.abs(got @ lum - want @ lum) / np.maximum(want @ lum, 1e-6)
+    assert np.median(rel) < 0.03, np.median(rel)
+    sg = lobes[0]
+    rl.set_sg(SGLighting(sg.axes, sg.sharpness, sg.amplitude * 0.5, list(sg.kinds)))   # the lamps dim
+    dim, again = rl.render()
+    assert again["wide_cones"] == 0
+    assert again["peak_cones"] == 0
+    assert np.allclose(dim, 0.5 * img, rtol=1e-5, atol=1e-7)
 
 
 def test_refuses_what_it_cannot_shade(shared_data: Path, tmp_path: Path) -> None:

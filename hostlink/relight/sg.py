@@ -30,15 +30,24 @@ Choices the paper leaves open, and why:
   exp(e (cos x - 1))``; the residual's Phong term takes the cosine at ``r`` and one cone about
   ``r`` of the lobe's half-angle (paper eq. 5-6: ``acos(1 - ln 2 / e)``). Blinn-Phong and Ward
   are not offered (their SG warps vary per point): :class:`SGRelighter` refuses them by name.
-- **Visibility**, two ways. ``"voxels"`` (the paper's): the scene voxelised (every triangle's
-  voxels, per object, re-voxelised only for objects that moved or deformed: dirty flags), an
-  occupancy mip pyramid, cones traced front to back (:func:`~hostlink.relight.sgkernels.trace_cones`).
-  ``"rays"`` (the exact baseline): Embree rays, 16 per cone uniformly within it and 32 per peak
-  drawn from the lobe's own distribution, cosine-weighted.
+- **Visibility**, two ways. ``"voxels"`` (the paper's, for the residual and the reflection
+  cone): the scene voxelised (every triangle's voxels, per object, re-voxelised only for objects
+  that moved or deformed: dirty flags), per-axis occupancy mip pyramids, cones traced front to
+  back (:func:`~hostlink.relight.sgkernels.trace_cones`), each sample's opacity raised to
+  ``cone_gain`` = 0.8 (compositing samples as independent occluders over-occludes: a cone's
+  samples through one opaque object are correlated; 0.8 measured best over the shared maps,
+  BENCHMARKS.md). The peaks' shadows are Embree rays even here, not cones: a lamp's cone
+  (0.2-4 deg) marched through the grid is a voxel-wide blur that over-occludes near surfaces
+  (9.9% per vertex on studio_small_03 with peak cones, 4.0% with rays): one ray along the axis
+  for a peak under 2 voxels across the grid (the sun), else ``PEAK_RAYS`` = 8 drawn from the
+  lobe; in :meth:`SGRelighter.render` the hard ones per pixel, the soft ones per vertex of the
+  visible triangles, interpolated. ``"rays"`` (the exact baseline): Embree rays, 16 per cone
+  uniformly within it and 32 per peak drawn from the lobe's own distribution, cosine-weighted.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -53,7 +62,10 @@ from hostlink.relight.sgkernels import (
     LAM_COS,
     MU_COS,
     cone_frame,
+    interpolate,
     pyramid_levels,
+    residual_visibility,
+    scatter_pixels,
     sg_matrix,
     shade_points,
     trace_cones,
@@ -70,7 +82,8 @@ DIFFUSE_GRID = 13          # cube-face side of the diffuse tables (smooth kernel
 ZONAL_SAMPLES = 1025
 RAYS_PER_CONE = 16
 RAYS_PER_PEAK = 32
-THIN_PEAK_VOXELS = 2.0     # peak cones narrower than this across the grid are shadow rays
+THIN_PEAK_VOXELS = 2.0     # peaks narrower than this across the grid: one shadow ray each
+PEAK_RAYS = 8              # rays per broader peak, with voxels (drawn from the lobe)
 
 
 # ---- kernels over the sphere -------------------------------------------------------------------
@@ -90,6 +103,13 @@ def _grid_dirs(N: int) -> np.ndarray:
     return out.reshape(-1, 3)
 
 
+@functools.cache
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.flags.writeable = w.flags.writeable = False
+    return x, w
+
+
 def zonal_cosine(lam: float, samples: int = ZONAL_SAMPLES) -> np.ndarray:
     """``C(t) = integral exp(lam (p . w - 1)) max(a . w, 0) dw`` on ``t = a . p`` in
     ``linspace(-1, 1, samples)``. In coordinates about ``p`` the azimuthal integral of the clamped
@@ -97,7 +117,7 @@ def zonal_cosine(lam: float, samples: int = ZONAL_SAMPLES) -> np.ndarray:
     Gauss-Legendre in ``u = 1 - cos theta`` over where the lobe is above 1e-22 of its peak."""
     t = np.linspace(-1.0, 1.0, samples)
     umax = min(2.0, 50.0 / max(lam, 1e-9))
-    x, w = np.polynomial.legendre.leggauss(256)
+    x, w = _gauss_legendre(256)
     u = (x + 1) * 0.5 * umax
     wu = w * 0.5 * umax * np.exp(-lam * u)
     ct = 1 - u
@@ -213,7 +233,7 @@ class SGRelighter:
     (per pixel)."""
 
     def __init__(self, scene: Scene, *, visibility: str = "voxels", voxels: int = 128,
-                 cone_gain: float = 1.0, cone_start: float = 2.0, cone_lift: float = 1.5,
+                 cone_gain: float = 0.8, cone_start: float = 2.0, cone_lift: float = 1.5,
                  cone_footprint: float = 0.2) -> None:
         if visibility not in ("voxels", "rays"):
             raise InputError(f"visibility must be 'voxels' or 'rays', got {visibility!r}", param="visibility")
@@ -254,6 +274,9 @@ class SGRelighter:
         self.origin = c - side / 2
         self._pyr: tuple[np.ndarray, np.ndarray] | None = None
         self._embree: Any = None
+        self._plane_cache: tuple[int, list[tuple[np.ndarray, float] | None]] | None = None
+        self._bound_cache: tuple[int, np.ndarray, np.ndarray] | None = None
+        self.owner = np.concatenate([np.full(len(ob.rest), k, np.int64) for k, ob in enumerate(self.objects)])
         self._geometry = 0          # bumped by every deformation or move
         self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
         self._lighting = 0          # bumped by every set_sg
@@ -419,36 +442,157 @@ class SGRelighter:
         tan[:, 8:] = self._peak_half_tan()[None]
         return dirs, tan
 
-    def _trace(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray, first: int = 0) -> np.ndarray:
+    def _thin(self) -> np.ndarray:
+        """(P,) bool: peaks narrower than THIN_PEAK_VOXELS across the whole grid (the sun: 0.4 deg),
+        whose shadow is one ray along the axis; the broader ones get PEAK_RAYS lobe-distributed rays."""
+        return np.asarray(2 * self.R * self._peak_half_tan() < THIN_PEAK_VOXELS, bool)
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per object its bounding sphere: centres (K, 3), radii (K,)."""
+        if self._bound_cache is None or self._bound_cache[0] != self._geometry:
+            c = np.zeros((len(self.objects), 3))
+            r = np.zeros(len(self.objects))
+            for k, ob in enumerate(self.objects):
+                v = self.vertices[ob.base:ob.base + len(ob.rest)]
+                c[k] = (v.min(axis=0) + v.max(axis=0)) / 2
+                r[k] = float(np.linalg.norm(v - c[k], axis=1).max())
+            self._bound_cache = (self._geometry, c, r)
+        return self._bound_cache[1], self._bound_cache[2]
+
+    def _needs_cone(self, pos: np.ndarray, dirs: np.ndarray, tan: np.ndarray,
+                    owner: np.ndarray | None) -> np.ndarray:
+        """(n, k) uint8: 1 where cone ``dirs[:, j]`` (half-angle ``atan(tan)``) from a point meets
+        some object's bounding sphere, other than the planar object the point lies on (a plane
+        cannot hide anything above it from its own points). The others are clear: not traced, and
+        free of the voxels' self-occlusion."""
+        need = np.zeros(tan.shape, bool)
+        centres, radii = self._bounds()
+        planes = self._planes()
+        half = np.arctan(tan)
+        for j in range(len(self.objects)):
+            v = centres[j] - pos
+            dist = np.linalg.norm(v, axis=1)
+            inside = dist <= radii[j] * (1 + 1e-9)
+            u = v / np.maximum(dist, 1e-300)[:, None]
+            ang = np.arccos(np.clip(np.einsum("nkc,nc->nk", dirs, u), -1, 1))
+            reach = np.arcsin(np.clip(radii[j] / np.maximum(dist, 1e-300), 0, 1))
+            hit = inside[:, None] | (ang <= half + reach[:, None] + 1e-6)
+            if owner is not None and planes[j] is not None:
+                hit[owner == j] = False
+            need |= hit
+        return need.astype(np.uint8)
+
+    def _trace(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray, first: int = 0,
+               owner: np.ndarray | None = None, matid: np.ndarray | None = None) -> np.ndarray:
         """Transmittance of the cones ``dirs[:, j]`` (cone ``first + j`` of the layout: 0-6
-        diffuse, 7 reflection, 8+ peaks) by the instance's visibility method."""
+        diffuse, 7 reflection, 8+ peaks) by the instance's visibility method; ``owner``: the
+        object each point lies on, if known (its own plane is then no occluder); ``matid``: the
+        points' materials, if known (a Lambert point's reflection cone is not traced: 1)."""
         if self.visibility == "voxels":
             pyr, offs = self._pyramid()
             out = np.empty(tan.shape)
-            # a peak cone under THIN_PEAK_VOXELS wide across the whole grid (the sun: 0.5 deg) is a
-            # ray: one Embree shadow ray along its axis, an exact hard shadow, instead of a
-            # voxel-wide blur marched at half-voxel steps
-            thin = np.zeros(tan.shape[1], bool)
-            if len(tan):
-                thin = (first + np.arange(tan.shape[1]) >= 8) & (2 * self.R * tan.max(axis=0) < THIN_PEAK_VOXELS)
-            wide = np.flatnonzero(~thin)
-            if len(wide):
-                sub = np.empty((len(pos), len(wide)))
-                trace_cones(np.ascontiguousarray(pos), np.ascontiguousarray(nrm), np.ascontiguousarray(dirs[:, wide]),
-                            np.ascontiguousarray(tan[:, wide]), pyr, offs, self.R, self.origin, self.vox,
-                            self.cone_start, self.cone_lift, self.cone_gain, self.cone_footprint, sub)
-                out[:, wide] = sub
-            for j in np.flatnonzero(thin):
-                out[:, j] = self._shadow_rays(pos, nrm, dirs[:, j])
+            # the peaks' shadows are Embree rays, not cones: a lamp's cone (0.2-4 deg) marched
+            # through the grid is a voxel-wide blur that over-occludes near surfaces (studio_small_03,
+            # Lambert: 9.9% per vertex with peak cones, 4.0% with 8 rays per broad peak)
+            peak = first + np.arange(tan.shape[1]) >= 8
+            cones = np.flatnonzero(~peak)
+            if len(cones):
+                sub = np.empty((len(pos), len(cones)))
+                cd, ct = np.ascontiguousarray(dirs[:, cones]), np.ascontiguousarray(tan[:, cones])
+                need = self._needs_cone(pos, cd, ct, owner)
+                if matid is not None and first + cones[-1] >= 7:   # the reflection cone: Phong only
+                    need[self.mats[np.asarray(matid, np.int64), 0] != 1, 7 - first] = 0
+                trace_cones(np.ascontiguousarray(pos), np.ascontiguousarray(nrm), cd, ct, pyr, offs, self.R,
+                            self.origin, self.vox, self.cone_start, self.cone_lift, self.cone_gain,
+                            self.cone_footprint, need, sub)
+                out[:, cones] = sub
+            thin = self._thin()
+            for j in np.flatnonzero(peak):
+                p = first + j - 8
+                if thin[p]:
+                    out[:, j] = self._shadow_rays(pos, nrm, dirs[:, j])
+                else:
+                    out[:, j] = self._lobe_rays(pos, nrm, self._peaks[0][p], float(self._peaks[1][p]), PEAK_RAYS)
             return out
         return self._ray_visibility(pos, nrm, dirs, tan, first)
 
-    def _embree_scene(self) -> Any:
+    def _lobe_rays(self, pos: np.ndarray, nrm: np.ndarray, axis: np.ndarray, lam: float, m: int) -> np.ndarray:
+        """Visibility of one peak lobe from each point: ``m`` rays drawn from the lobe's own
+        distribution (a stratified vMF inverse CDF, Fibonacci azimuths), each weighted by its cosine
+        at the point; the fraction of that light that escapes."""
+        from hostlink.relight.precompute import occluded, scene_eps
+
+        eps = scene_eps(self.scene)
+        n = len(pos)
+        g = (np.arange(m) + 0.5) / m
+        phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
+        ct = np.clip(1 + np.log(g + (1 - g) * math.exp(-2 * min(lam, 700.0))) / max(lam, 1e-9), -1, 1)
+        st = np.sqrt(1 - ct * ct)
+        ax = np.asarray(axis, np.float64)
+        t1 = np.cross(ax, [1.0, 0, 0] if abs(ax[0]) < 0.9 else [0, 1.0, 0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(ax, t1)
+        d = ct[:, None] * ax + (st * np.cos(phi))[:, None] * t1 + (st * np.sin(phi))[:, None] * t2   # (m, 3)
+        cos = nrm @ d.T
+        up = cos > 0
+        occ = np.ones((n, m), bool)
+        vi, ri = np.nonzero(up)
+        if len(vi):
+            o = pos[vi] + eps * nrm[vi]
+            es = self._occluders(o, d)
+            occ[vi, ri] = False if es is None else occluded(es, o, d[ri])
+        w = np.where(up, cos, 0.0)
+        tot = w.sum(axis=1)
+        return np.where(tot > 0, (w * ~occ).sum(axis=1) / np.where(tot > 0, tot, 1), 0.0)
+
+    def _embree_scene(self, skip: frozenset[int] = frozenset()) -> Any:
+        """The Embree scene of every object but ``skip`` (None when nothing is left), rebuilt
+        after a deformation or move."""
         from hostlink.relight.precompute import build_embree
 
-        if self._embree is None or self._embree[1] != self._geometry:
-            self._embree = (build_embree([(self.vertices, self.faces)]), self._geometry)
-        return self._embree[0]
+        if self._embree is None or self._embree[0] != self._geometry:
+            self._embree = (self._geometry, {})
+        scenes = self._embree[1]
+        if skip not in scenes:
+            meshes = [(self.vertices[ob.base:ob.base + len(ob.rest)], ob.faces)
+                      for k, ob in enumerate(self.objects) if k not in skip]
+            scenes[skip] = build_embree(meshes) if meshes else None
+        return scenes[skip]
+
+    def _planes(self) -> list[tuple[np.ndarray, float] | None]:
+        """Per object, its plane ``(n, c)`` (``n . x = c``) if all its vertices lie on one, else None."""
+        if self._plane_cache is None or self._plane_cache[0] != self._geometry:
+            planes: list[tuple[np.ndarray, float] | None] = []
+            for ob in self.objects:
+                v = self.vertices[ob.base:ob.base + len(ob.rest)]
+                tri = v[ob.faces]
+                cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+                n = cr.sum(axis=0)
+                ln = float(np.linalg.norm(n))
+                ext = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+                if ln <= 0 or ext <= 0:
+                    planes.append(None)
+                    continue
+                n = n / ln
+                c = float(v[0] @ n)
+                planes.append((n, c) if float(np.abs(v @ n - c).max()) <= 1e-9 * ext else None)
+            self._plane_cache = (self._geometry, planes)
+        return self._plane_cache[1]
+
+    def _occluders(self, origins: np.ndarray, dirs: np.ndarray) -> Any:
+        """The Embree scene for rays from ``origins`` along any of ``dirs``, without the planar
+        objects none of them can reach (every origin on one side, every direction pointing away:
+        a floor under a sun's shadow rays). None: nothing can occlude them."""
+        skip = []
+        for k, pl in enumerate(self._planes()):
+            if pl is None or not len(origins):
+                continue
+            n, c = pl
+            side = origins @ n - c
+            away = dirs @ n
+            if (side.min() > 0 and away.min() > 0) or (side.max() < 0 and away.max() < 0):
+                skip.append(k)
+        return self._embree_scene(frozenset(skip))
 
     def _shadow_rays(self, pos: np.ndarray, nrm: np.ndarray, d: np.ndarray) -> np.ndarray:
         """1 where the ray from each point along ``d`` escapes (and ``d`` is above its horizon), else 0."""
@@ -459,7 +603,9 @@ class SGRelighter:
         out = np.zeros(len(pos))
         rows = np.flatnonzero(up)
         eps = scene_eps(self.scene)
-        out[rows] = ~occluded(self._embree_scene(), pos[rows] + eps * nrm[rows], d[rows])
+        o = pos[rows] + eps * nrm[rows]
+        es = self._occluders(o, d[rows])
+        out[rows] = 1.0 if es is None else ~occluded(es, o, d[rows])
         return out
 
     def _ray_visibility(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray,
@@ -470,51 +616,35 @@ class SGRelighter:
         eps = scene_eps(self.scene)
         n, k = tan.shape
         out = np.empty((n, k))
-        plam = self._peaks[1]
+        pax, plam = self._peaks[0], self._peaks[1]
         diffuse = [j for j in range(k) if first + j < 7]
         if diffuse:   # the residual's visibility, measured: one light-weighted fraction for all 7
-            out[:, diffuse] = self._residual_visibility(es, eps, pos, nrm)[:, None]
+            out[:, diffuse] = self._residual_ray_visibility(es, eps, pos, nrm)[:, None]
         for j in range(k):
             c = first + j
-            if c < 7:
-                continue
-            peak = c >= 8
-            m = RAYS_PER_PEAK if peak else RAYS_PER_CONE
-            g = (np.arange(m) + 0.5) / m
-            phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
-            if peak:
-                lam = float(plam[c - 8])
-                ct = 1 + np.log(g + (1 - g) * math.exp(-2 * min(lam, 700.0))) / max(lam, 1e-9)  # vMF inverse CDF
-            else:
+            if c >= 8:
+                out[:, j] = self._lobe_rays(pos, nrm, pax[c - 8], float(plam[c - 8]), RAYS_PER_PEAK)
+            elif c == 7:   # the reflection cone: rays uniform within it
+                m = RAYS_PER_CONE
+                g = (np.arange(m) + 0.5) / m
+                phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
                 ca = 1 / np.sqrt(1 + tan[:, j] ** 2)
-                ct = 1 - g[None] * (1 - ca[:, None])  # uniform in the cone
-            ct = np.clip(ct, -1, 1)
-            st = np.sqrt(1 - ct * ct)
-            ax = dirs[:, j]
-            t1 = np.cross(ax, np.where(np.abs(ax[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-            t2 = np.cross(ax, t1)
-            ctb = np.broadcast_to(ct, (n, m))
-            stb = np.broadcast_to(st, (n, m))
-            d = (ctb[..., None] * ax[:, None] + (stb * np.cos(phi))[..., None] * t1[:, None]
-                 + (stb * np.sin(phi))[..., None] * t2[:, None])
-            cos = np.einsum("nmk,nk->nm", d, nrm)
-            up = cos > 0
-            occ = np.ones((n, m), bool)
-            vi, ri = np.nonzero(up)
-            occ[vi, ri] = occluded(es, pos[vi] + eps * nrm[vi], d[vi, ri])
-            w = np.where(up, cos, 0.0)
-            if not peak and c < 7 and self._tables is not None and self._tables.L is not None:
-                w = w * np.maximum(_table_lookup(self._tables.L, d.reshape(-1, 3)).reshape(n, m), 0.0)
-            if peak or c < 7:   # the light the cone's rays carry: cosine x residual radiance
-                tot = w.sum(axis=1)
-                out[:, j] = np.where(tot > 0, (w * ~occ).sum(axis=1) / np.where(tot > 0, tot, 1),
-                                     (~occ).mean(axis=1))
-            else:
+                ct = np.clip(1 - g[None] * (1 - ca[:, None]), -1, 1)
+                st = np.sqrt(1 - ct * ct)
+                ax = dirs[:, j]
+                t1 = np.cross(ax, np.where(np.abs(ax[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+                t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+                t2 = np.cross(ax, t1)
+                d = (ct[..., None] * ax[:, None] + (st * np.cos(phi))[..., None] * t1[:, None]
+                     + (st * np.sin(phi))[..., None] * t2[:, None])
+                up = np.einsum("nmk,nk->nm", d, nrm) > 0
+                occ = np.ones((n, m), bool)
+                vi, ri = np.nonzero(up)
+                occ[vi, ri] = occluded(es, pos[vi] + eps * nrm[vi], d[vi, ri])
                 out[:, j] = (~occ).mean(axis=1)
         return out
 
-    def _residual_visibility(self, es: Any, eps: float, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+    def _residual_ray_visibility(self, es: Any, eps: float, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
         """``V_res`` by rays: 7 x RAYS_PER_CONE cosine-distributed rays over each point's
         hemisphere (a Fibonacci pattern, turned per point), each weighted by the residual's
         radiance along it; the fraction of that light that escapes. The cones' partition is the
@@ -542,37 +672,50 @@ class SGRelighter:
 
     # ---- shading -----------------------------------------------------------------------------
     def shade(self, pos: np.ndarray, nrm: np.ndarray, matid: np.ndarray, eye: np.ndarray,
-              vis: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+              vis: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Outgoing radiance (n, 3) at points ``pos`` with unit normals ``nrm`` and materials
-        ``matid`` towards ``eye``; ``vis`` from :meth:`_visibility_rows` (traced when ``None``)."""
+        ``matid`` towards ``eye``; ``vis`` = (``V_res`` (n, 3), reflection cone (n,), peaks (n, P))
+        from :meth:`_visibility_rows` (traced when ``None``)."""
         if self._tables is None:
             raise InputError("no lighting yet: call set_sg or set_equirect first", param="lights")
         wo = np.asarray(eye, np.float64) - pos
         wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
         if vis is None:
             vis = self._visibility_rows(matid, pos, nrm, wo)
-        cones, vis7, vspec, vpeak = vis
+        vres, vspec, vpeak = vis
         t = self._tables
         pax, plam, pamp, pF = self._peaks
         out = np.zeros((len(pos), 3))
-        kc = MU_COS
-        kr = MU_COS * math.exp(self._lam_ring - LAM_COS - LAM_CONE)
         shade_points(np.ascontiguousarray(nrm), wo, np.asarray(matid, np.int64), self.mats, self.gloss_slot,
-                     t.E, t.Wc, t.Wr, kc, kr, LAM_COS, LAM_CONE, t.G, pax, plam, pamp, pF,
-                     cones, vis7, vspec, vpeak, out)
+                     t.E, t.G, pax, plam, pamp, pF, np.ascontiguousarray(vres), vspec, vpeak, out)
         return out
 
-    def _visibility_rows(self, matid: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
-                         wo: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(cones (n, 7, 3), vis7 (n, 7), vspec (n,), vpeak (n, P)) of points."""
+    def _residual_weights(self, nrm: np.ndarray, cones: np.ndarray, vis7: np.ndarray) -> np.ndarray:
+        """``V_res`` (n, 3): the cones' transmittances weighted by the light each carries now."""
+        assert self._tables is not None
+        t = self._tables
+        out = np.empty((len(nrm), 3))
+        residual_visibility(np.ascontiguousarray(nrm), np.ascontiguousarray(cones), np.ascontiguousarray(vis7),
+                            t.Wc, t.Wr, MU_COS, MU_COS * math.exp(self._lam_ring - LAM_COS - LAM_CONE),
+                            LAM_COS, LAM_CONE, out)
+        return out
+
+    def _visibility_rows(self, matid: np.ndarray, pos: np.ndarray, nrm: np.ndarray, wo: np.ndarray,
+                         owner: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(``V_res`` (n, 3), reflection cone (n,), peaks (n, P)) of points (on objects ``owner``)."""
+        if self._tables is None:
+            raise InputError("no lighting yet: call set_sg or set_equirect first", param="lights")
         dirs, tan = self._cone_dirs(pos, nrm, wo, matid)
-        out = self._trace(pos, nrm, dirs, tan)
-        return dirs[:, :7].copy(), out[:, :7].copy(), out[:, 7].copy(), out[:, 8:].copy()
+        out = self._trace(pos, nrm, dirs, tan, owner=owner, matid=matid)
+        return self._residual_weights(nrm, dirs[:, :7], out[:, :7]), out[:, 7].copy(), out[:, 8:].copy()
 
     def vertex_radiance(self, eye: np.ndarray, vidx: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) outgoing radiance of vertices ``vidx`` (all by default) towards ``eye``."""
         vidx = np.arange(len(self.vertices)) if vidx is None else np.asarray(vidx, np.int64)
-        return self.shade(self.vertices[vidx], self._normals[vidx], self.matid[vidx], eye)
+        pos, nrm, matid = self.vertices[vidx], self._normals[vidx], self.matid[vidx]
+        wo = np.asarray(eye, np.float64) - pos
+        wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
+        return self.shade(pos, nrm, matid, eye, self._visibility_rows(matid, pos, nrm, wo, self.owner[vidx]))
 
     def _peak_half_tan(self) -> np.ndarray:
         """tan of each peak cone's half-angle (paper eq. 5-6; 89 deg for lobes too broad for it)."""
@@ -581,24 +724,31 @@ class SGRelighter:
             ca = np.where(plam >= math.log(2) / 2, 1 + math.log(0.5) / np.maximum(plam, 1e-9), -1.0)
         return np.asarray(np.tan(np.minimum(np.arccos(np.clip(ca, -1, 1)), math.radians(89))))
 
-    def _peak_visibility(self, pos: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, float]:
-        """(n, P) visibility of each peak from each point, and the number of cones traced: a
-        peak whose cone lies wholly below a point's horizon is not traced there (it lights
-        nothing: 0)."""
+    def _peak_visibility(self, pos: np.ndarray, nrm: np.ndarray,
+                         which: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """(n, len(which)) visibility of peaks ``which`` (all by default) from each point, and the
+        number of peak visibilities traced: a peak wholly below a point's horizon is not traced
+        there (it lights nothing: 0)."""
         pax = self._peaks[0]
-        n, P = len(pos), len(pax)
-        out = np.zeros((n, P))
-        if P == 0:
-            return out, 0.0
+        ids = np.arange(len(pax)) if which is None else np.asarray(which, np.int64)
+        out = np.zeros((len(pos), len(ids)))
         tan = self._peak_half_tan()
         sin_half = tan / np.sqrt(1 + tan * tan)
-        above = nrm @ pax.T > -sin_half[None]
-        rows = np.flatnonzero(above.any(axis=1))
-        dirs = np.broadcast_to(pax[None], (len(rows), P, 3))
-        if len(rows):
-            out[rows] = self._trace(pos[rows], nrm[rows], dirs, np.broadcast_to(tan[None], (len(rows), P)), first=8)
-        out[~above] = 0.0
-        return out, float(len(rows) * P)
+        count = 0.0
+        for j, p in enumerate(ids):
+            rows = np.flatnonzero(nrm @ pax[p] > -sin_half[p])
+            if len(rows):
+                out[rows, j] = self._trace(pos[rows], nrm[rows], np.broadcast_to(pax[p], (len(rows), 1, 3)),
+                                           np.full((len(rows), 1), tan[p]), first=8 + int(p))[:, 0]
+            count += len(rows)
+        return out, count
+
+    @staticmethod
+    def _at_pixels(f: dict[str, Any], at: np.ndarray) -> np.ndarray:
+        """Per-vertex values (V, C) interpolated at the frame's covered pixels (P, C)."""
+        out = np.empty((len(f["bary"]), at.shape[1]))
+        interpolate(f["bary"], f["fv"], np.ascontiguousarray(at, np.float64), out)
+        return out
 
     def render(self, cam: Camera | None = None, background: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, float]]:
         """Image (H, W, 3) float32 linear, shaded per pixel: position, normal and reflection per
@@ -626,8 +776,10 @@ class SGRelighter:
             tri = ras.tri[cov]
             b = ras.bary[cov].astype(np.float64)
             fv = self.faces[tri]
-            pos = np.einsum("pk,pkj->pj", b, self.vertices[fv])
-            nrm = np.einsum("pk,pkj->pj", b, self._normals[fv])
+            fv = np.ascontiguousarray(fv, np.int64)
+            pos, nrm = np.empty((len(b), 3)), np.empty((len(b), 3))
+            interpolate(b, fv, self.vertices, pos)
+            interpolate(b, fv, self._normals, nrm)
             nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
             matid = self.matid[fv[:, 0]]
             vis_v = visible_vertices(ras.tri, self.faces, len(self.vertices))
@@ -636,22 +788,43 @@ class SGRelighter:
             wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
             dirs, tan = self._cone_dirs(vp, vn, wo, self.matid[vis_v])
             wide = np.zeros((len(self.vertices), 8))
-            wide[vis_v] = self._trace(vp, vn, dirs[:, :8], tan[:, :8])
+            wide[vis_v] = self._trace(vp, vn, dirs[:, :8], tan[:, :8], owner=self.owner[vis_v],
+                                      matid=self.matid[vis_v])
             traced["wide_cones"] = float(8 * len(vis_v))
-            vw = np.einsum("pk,pkj->pj", b, wide[fv])
-            cones = np.zeros((len(pos), 7, 3))
-            cone_frame(nrm, math.cos(RING_TILT), math.sin(RING_TILT), cones)
-            f = self._frame = {"key": key, "cov": cov, "pos": pos, "nrm": nrm, "matid": matid, "cones": cones,
-                               "vis7": np.ascontiguousarray(vw[:, :7]), "vspec": np.ascontiguousarray(vw[:, 7]),
-                               "peaks": None, "vpeak": None}
+            f = self._frame = {"key": key, "cov": cov, "pos": pos, "nrm": nrm, "matid": matid,
+                               "vis_v": vis_v, "fv": fv, "bary": b, "cones": dirs[:, :7].copy(),
+                               "vis7": wide[vis_v, :7].copy(),
+                               "pix": np.flatnonzero(cov),
+                               "peaks": None, "vpeak": None, "lighting": None, "vres": None}
+            f["vspec"] = self._at_pixels(f, wide[:, 7:8])[:, 0]
         pax, plam = self._peaks[0], self._peaks[1]
         pkey = (pax.tobytes(), plam.tobytes())
         if f["peaks"] != pkey:
-            f["vpeak"], traced["peak_cones"] = self._peak_visibility(f["pos"], f["nrm"])
-            f["peaks"] = pkey
-        rad = self.shade(f["pos"], f["nrm"], f["matid"], eye, (f["cones"], f["vis7"], f["vspec"], f["vpeak"]))
+            # hard shadows per pixel; with voxels a broad peak's soft shadow (its rays) is traced
+            # from the vertices of the visible triangles and interpolated, like the wide cones
+            per_vertex = ~self._thin() if self.visibility == "voxels" else np.zeros(len(pax), bool)
+            vpeak = np.zeros((len(f["pos"]), len(pax)))
+            thin = np.flatnonzero(~per_vertex)
+            vpeak[:, thin], n_pix = self._peak_visibility(f["pos"], f["nrm"], thin)
+            broad = np.flatnonzero(per_vertex)
+            n_vert = 0.0
+            if len(broad):
+                vv = f["vis_v"]
+                at = np.zeros((len(self.vertices), len(broad)))
+                at[vv], n_vert = self._peak_visibility(self.vertices[vv], self._normals[vv], broad)
+                vpeak[:, broad] = self._at_pixels(f, at)
+            f["vpeak"], f["peaks"] = vpeak, pkey
+            traced["peak_cones"] = n_pix + n_vert
+        if f["lighting"] != self._lighting:
+            # the residual's visibility weighs each cone by the light it carries: per vertex of the
+            # visible triangles (their cones), interpolated (the cones' transmittances are anyway)
+            at = np.zeros((len(self.vertices), 3))
+            vv = f["vis_v"]
+            at[vv] = self._residual_weights(self._normals[vv], f["cones"], f["vis7"])
+            f["vres"], f["lighting"] = self._at_pixels(f, at), self._lighting
+        rad = self.shade(f["pos"], f["nrm"], f["matid"], eye, (f["vres"], f["vspec"], f["vpeak"]))
         img = np.zeros((*f["cov"].shape, 3), np.float32)
-        img[f["cov"]] = rad
+        scatter_pixels(f["pix"], rad, img.reshape(-1, 3))
         if background is not None:
             rays = view_rays(cam)
             img[~f["cov"]] = lookup_equirect(background, rays[~f["cov"]])

@@ -17,7 +17,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["cone_frame", "shade_points", "trace_cones", "voxelize"]
+__all__ = ["cone_frame", "interpolate", "residual_visibility", "scatter_pixels", "shade_points", "trace_cones", "voxelize"]
 
 LAM_COS = 2.133     # the clamped cosine as one SG (Wang et al. 2009): mu 1.17, lambda 2.133
 MU_COS = 1.17
@@ -88,26 +88,36 @@ def cone_frame(n: np.ndarray, ring_cos: float, ring_sin: float, out: np.ndarray)
 
 
 @njit(cache=True, fastmath=True, parallel=True)
-def shade_points(nrm: np.ndarray, wo: np.ndarray, matid: np.ndarray, mats: np.ndarray,
-                 gloss_slot: np.ndarray, tabE: np.ndarray, tabWc: np.ndarray, tabWr: np.ndarray,
-                 kc: float, kr: float, lam_cos: float, lam_cone: float, tabG: np.ndarray,
-                 paxis: np.ndarray, plam: np.ndarray, pamp: np.ndarray, pF: np.ndarray,
-                 cones: np.ndarray, vis7: np.ndarray, vspec: np.ndarray, vpeak: np.ndarray,
-                 out: np.ndarray) -> None:
-    """Outgoing radiance per point (see :mod:`hostlink.relight.sg` for the model).
+def interpolate(bary: np.ndarray, fv: np.ndarray, at: np.ndarray, out: np.ndarray) -> None:
+    """``out[p] = sum_k bary[p, k] at[fv[p, k]]``: per-vertex values (V, C) at pixels (P, C)."""
+    for p in prange(bary.shape[0]):
+        a, b, c = fv[p, 0], fv[p, 1], fv[p, 2]
+        u, v, w = bary[p, 0], bary[p, 1], bary[p, 2]
+        for k in range(at.shape[1]):
+            out[p, k] = u * at[a, k] + v * at[b, k] + w * at[c, k]
 
-    ``tabE``: exact clamped-cosine irradiance of the residual lobes per normal; ``tabWc`` /
-    ``tabWr``: the residual light through the centre / ring visibility lobes (SG kernels of the
-    products cosine x cone lobe), ``kc`` / ``kr`` their amplitude factors; ``tabG[s]``: the
-    residual convolved with the Phong lobe of gloss slot ``s``; peaks: axes, sharpness,
-    amplitudes and ``pF[p]`` (zonal clamped-cosine table of lobe p). Visibility: ``vis7`` (N, 7)
-    cone transmittances, ``vspec`` (N,) the reflection cone's, ``vpeak`` (N, P) each peak's."""
-    P = paxis.shape[0]
-    for i in prange(nrm.shape[0]):   # scalars only in the loop body: no per-point allocation
+
+@njit(cache=True, parallel=True)
+def scatter_pixels(idx: np.ndarray, rad: np.ndarray, img: np.ndarray) -> None:
+    """``img[idx[p]] = rad[p]`` (img flat (H W, 3) float32)."""
+    for p in prange(idx.shape[0]):
+        q = idx[p]
+        img[q, 0] = rad[p, 0]
+        img[q, 1] = rad[p, 1]
+        img[q, 2] = rad[p, 2]
+
+
+@njit(cache=True, fastmath=True, parallel=True)
+def residual_visibility(nrm: np.ndarray, cones: np.ndarray, vis7: np.ndarray, tabWc: np.ndarray,
+                        tabWr: np.ndarray, kc: float, kr: float, lam_cos: float, lam_cone: float,
+                        out: np.ndarray) -> None:
+    """``V_res`` per point and channel (N, 3): the 7 cones' transmittances ``vis7`` (N, 7) along
+    ``cones`` (N, 7, 3) weighted by the residual light each carries, ``tabWc`` / ``tabWr`` (the
+    light through the centre / ring visibility lobes: SG kernels of the products cosine x cone
+    lobe, looked up at the product's axis) times their amplitude factors ``kc`` / ``kr``. A point
+    whose cones carry no light gets the cones' mean."""
+    for i in prange(nrm.shape[0]):
         nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
-        m = matid[i]
-        typ = int(mats[m, 0])
-        # the residual's visibility: the cones' transmittances weighted by the light they carry
         v0 = v1 = v2 = 0.0
         s0 = s1 = s2 = 0.0
         mean7 = 0.0
@@ -131,10 +141,32 @@ def shade_points(nrm: np.ndarray, wo: np.ndarray, matid: np.ndarray, mats: np.nd
             s1 += w1
             s2 += w2
             mean7 += vc / 7.0
+        out[i, 0] = v0 / s0 if s0 > 1e-30 else mean7
+        out[i, 1] = v1 / s1 if s1 > 1e-30 else mean7
+        out[i, 2] = v2 / s2 if s2 > 1e-30 else mean7
+
+
+@njit(cache=True, fastmath=True, parallel=True)
+def shade_points(nrm: np.ndarray, wo: np.ndarray, matid: np.ndarray, mats: np.ndarray,
+                 gloss_slot: np.ndarray, tabE: np.ndarray, tabG: np.ndarray,
+                 paxis: np.ndarray, plam: np.ndarray, pamp: np.ndarray, pF: np.ndarray,
+                 vres: np.ndarray, vspec: np.ndarray, vpeak: np.ndarray, out: np.ndarray) -> None:
+    """Outgoing radiance per point (see :mod:`hostlink.relight.sg` for the model).
+
+    ``tabE``: exact clamped-cosine irradiance of the residual lobes per normal; ``tabG[s]``: the
+    residual convolved with the Phong lobe of gloss slot ``s``; peaks: axes, sharpness,
+    amplitudes and ``pF[p]`` (zonal clamped-cosine table of lobe p). Visibility: ``vres`` (N, 3)
+    the residual's (:func:`residual_visibility`), ``vspec`` (N,) the reflection cone's, ``vpeak``
+    (N, P) each peak's."""
+    P = paxis.shape[0]
+    for i in prange(nrm.shape[0]):   # scalars only in the loop body: no per-point allocation
+        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        m = matid[i]
+        typ = int(mats[m, 0])
         e0, e1, e2 = _dir_lookup3(tabE, nx, ny, nz)  # may be < 0: the residual about a peak
-        d0 = e0 * (v0 / s0 if s0 > 1e-30 else mean7)
-        d1 = e1 * (v1 / s1 if s1 > 1e-30 else mean7)
-        d2 = e2 * (v2 / s2 if s2 > 1e-30 else mean7)
+        d0 = e0 * vres[i, 0]
+        d1 = e1 * vres[i, 1]
+        d2 = e2 * vres[i, 2]
         for p in range(P):
             f = _zonal(pF[p], nx * paxis[p, 0] + ny * paxis[p, 1] + nz * paxis[p, 2]) * vpeak[i, p]
             d0 += pamp[p, 0] * f
@@ -235,19 +267,23 @@ def _sample(pyr: np.ndarray, offs: np.ndarray, R: int, lvl: int, px: float, py: 
 @njit(cache=True, fastmath=True, parallel=True)
 def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray,
                 pyr: np.ndarray, offs: np.ndarray, R: int, origin: np.ndarray, vox: float,
-                start: float, lift: float, gain: float, footprint: float, out: np.ndarray) -> None:
+                start: float, lift: float, gain: float, footprint: float, need: np.ndarray,
+                out: np.ndarray) -> None:
     """Transmittance of cones (voxel cone tracing, Crassin et al. 2011; ``pyr`` (3, total): the
     per-axis pyramids of :func:`hostlink.relight.sg.anisotropic_pyramid`): for point ``i`` and cone
     ``k`` along ``dirs[i, k]`` with ``tan(half angle) = tan_half[i, k]``, from ``orig[i]`` lifted
     by ``lift`` voxels along ``nrm[i]``, starting ``start`` voxels out. Each step samples the
     pyramid at the level whose cell is ``footprint`` x the cone's diameter (a cell as wide as the
-    cone reaches back to the surface it starts from) and composites ``1 - (1 - occ)^(gain step / cell)``, skipping empty space by the level-3 cells front to back. Stops at 99% opacity or the grid's edge."""
+    cone reaches back to the surface it starts from) and composites ``1 - (1 - occ)^(gain step / cell)``, skipping empty space by the level-3 cells front to back. Stops at 99% opacity or the grid's edge. Cones with ``need[i, k]`` false are clear (1) untraced."""
     nl = offs.shape[0] - 1
     for i in prange(orig.shape[0]):
         ox = (orig[i, 0] - origin[0]) / vox + lift * nrm[i, 0]
         oy = (orig[i, 1] - origin[1]) / vox + lift * nrm[i, 1]
         oz = (orig[i, 2] - origin[2]) / vox + lift * nrm[i, 2]
         for k in range(dirs.shape[1]):
+            if not need[i, k]:   # no object within the cone (the caller's bounding test): clear
+                out[i, k] = 1.0
+                continue
             dx, dy, dz = dirs[i, k, 0], dirs[i, k, 1], dirs[i, k, 2]
             th = tan_half[i, k]
             t = start
@@ -304,14 +340,19 @@ def sg_matrix(kind: int, lam_k: float, d: np.ndarray, axes: np.ndarray, lam: np.
             if kind == 0:
                 r = math.sqrt(max(lam_k * lam_k + la * la + 2 * lam_k * la * c, 0.0))
                 s = lam_k + la
-                if r > 1e-9:
+                if r - s < -87.0:    # below float32's smallest normal: the lobes do not overlap
+                    out[i, m] = 0.0
+                elif r > 20.0:       # exp(-2 r) < 5e-18 of the first term
+                    out[i, m] = 2 * math.pi * math.exp(r - s) / r
+                elif r > 1e-9:
                     out[i, m] = 2 * math.pi * (math.exp(r - s) - math.exp(-r - s)) / r
                 else:
                     out[i, m] = 4 * math.pi * math.exp(-s)
             elif kind == 1:
                 out[i, m] = _zonal(zonal[zslot[m]], c)
             else:
-                out[i, m] = math.exp(la * (c - 1.0))
+                x = la * (c - 1.0)
+                out[i, m] = math.exp(x) if x > -87.0 else 0.0
 
 
 @njit(cache=True, fastmath=True, parallel=True)
