@@ -3,7 +3,8 @@
 ``recover`` writes ``DIR/reflectance.exr`` and ``DIR/confidence.exr`` (atomically) and prints what
 it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
 captures' format: ``{"lights": [{"position", "radius", "rgb"}]}``, the whole edited set: change
-a power, add or drop a light) and writes the room under them (``.exr`` linear, ``.png``
+a power, add or drop a light; and ``"objects"``: virtual meshes to insert, see
+:func:`hostlink.room.room.load_edits`) and writes the room under them (``.exr`` linear, ``.png``
 tone-mapped). Bad input exits 2 naming the file.
 """
 
@@ -43,12 +44,12 @@ def _render(a: argparse.Namespace) -> int:
     from device.core.errors import InputError
     from device.core.imageio import read_hdr_image
     from hostlink.relight.render import write_image
-    from hostlink.room.room import load_lights
+    from hostlink.room.room import load_edits
 
     out = Path(a.out)
     if out.suffix.lower() not in (".png", ".exr"):
         raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
-    lights = load_lights(a.edit)
+    lights, objects = load_edits(a.edit)
     t0 = time.perf_counter()
     room = _room(a.dir)
     refl = a.dir / "reflectance.exr"
@@ -56,10 +57,12 @@ def _render(a: argparse.Namespace) -> int:
         room.use_reflectance(read_hdr_image(refl), read_hdr_image(a.dir / "confidence.exr")[..., 0])
     else:
         room.recover()
-    img = room.render(lights, a.edit)
-    write_image(out, img, mask=room.cover)
+    img = room.render(lights, a.edit, objects)
+    mask = room.cover if room.object_mask is None or not objects else room.cover | room.object_mask
+    write_image(out, img, mask=mask)
     if not a.quiet:
-        print(f"room: wrote {out} ({len(lights)} lights, {time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+        print(f"room: wrote {out} ({len(lights)} lights, {len(objects)} objects, {time.perf_counter() - t0:.1f} s)",
+              file=sys.stderr)
     return 0
 
 
@@ -74,7 +77,7 @@ def main(argv: list[str]) -> int:
     r.add_argument("--quiet", action="store_true")
     e = sub.add_parser("render", help="render the room under the lights of EDITS.json")
     e.add_argument("dir", type=Path)
-    e.add_argument("--edit", type=Path, required=True, help="EDITS.json: {\"lights\": [...]}, the edited light set")
+    e.add_argument("--edit", type=Path, required=True, help="EDITS.json: {\"lights\": [...], \"objects\": [...]}, the edited light set and virtual meshes")
     e.add_argument("--out", required=True, help="IMAGE.exr (linear) or IMAGE.png (tone-mapped)")
     e.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)

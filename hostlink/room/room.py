@@ -31,10 +31,18 @@ What it does (the paper's steps; the choices it leaves open, and ours):
 - **Relighting**: any set of spherical lights (power changes, added or removed lights): the
   same direct term, the radiosity solve with the recovered reflectance for every patch, per
   pixel ``B = rho / pi (E_direct + E_indirect)``. A light's geometry term is cached, so a power
-  change is a weighted sum (no rays), an added light traces its own rays only.
+  change is a weighted sum (no rays), an added light traces its own rays only (adaptively: a
+  quarter of its sample points first, the rest only where those disagree).
+- **Virtual objects** (``EDITS.json`` ``"objects"``, :func:`load_edits`; the paper's section 5):
+  Lambertian meshes inserted with their own albedo. They shadow the room's lamps (re-traced only
+  inside the shaft from a lamp to the objects' bounding sphere), block the room's own form
+  factors (only links passing that sphere re-traced), and join the radiosity solve as clusters
+  of their faces, so they reflect light onto the room and take the room's light themselves; an
+  object's pixel is shaded with its own normal against its cluster's view of the room. A moved
+  object is the same computation with the last frame's radiosity as the start.
 
-Not built: virtual objects inserted into the room, real objects removed (texture synthesis on
-the reflectance), lights found from probes' peaks.
+Not built: real objects removed (texture synthesis on the reflectance), lights found from
+probes' peaks, the ambient-only indirect estimate.
 """
 
 from __future__ import annotations
@@ -51,7 +59,7 @@ import numpy as np
 from device.core.errors import InputError
 from device.core.sphere import luminance
 
-__all__ = ["CameraCV", "Light", "Room", "load_camera", "load_lights"]
+__all__ = ["CameraCV", "Light", "Room", "VirtualObject", "load_camera", "load_edits", "load_lights"]
 
 OUTLIER = 0.3          # a capture's reflectance further than this fraction from the median is rejected
 
@@ -135,6 +143,97 @@ def load_lights(path: str | Path) -> list[Light]:
         if not (math.isfinite(r) and r > 0) or (rgb < 0).any():
             raise InputError(f"{p}: lights[{i}] needs radius > 0 and rgb >= 0", param="radius")
         out.append(Light(tuple(pos.tolist()), r, tuple(rgb.tolist())))  # type: ignore[arg-type]
+    return out
+
+
+@dataclass(frozen=True)
+class VirtualObject:
+    """A virtual mesh inserted into the room: posed vertices (world units), faces, and a
+    Lambertian albedo."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    albedo: tuple[float, float, float]
+
+
+def load_edits(path: str | Path) -> tuple[list[Light], list[VirtualObject]]:
+    """EDITS.json: ``{"lights": [...], "objects": [{"mesh": "spot.obj", "albedo": [r, g, b],
+    "scale": s, "rotation": [x, y, z], "translation": [x, y, z]}]}``: the whole edited light set
+    (the captures' format) and virtual meshes to insert (OBJ paths relative to the file; each
+    scaled about its own origin, rotated by XYZ Euler degrees, then translated)."""
+    from hostlink.relight.scene import load_obj, rotation_matrix
+
+    p = Path(path)
+    lights = load_lights(p)
+    doc = _read_json(p)
+    objs = doc.get("objects", [])
+    if not isinstance(objs, list):
+        raise InputError(f"{p}: 'objects' must be a list", param="objects")
+    out = []
+    for i, d in enumerate(objs):
+        if not isinstance(d, dict) or not isinstance(d.get("mesh"), str):
+            raise InputError(f"{p}: objects[{i}] needs a \"mesh\" (an OBJ path)", param="objects")
+        alb = _mat(d, "albedo", (3,), p)
+        if (alb < 0).any() or (alb > 1).any():
+            raise InputError(f"{p}: objects[{i}].albedo must lie in [0, 1]", param="albedo")
+        rot = _mat(d, "rotation", (3,), p) if "rotation" in d else np.zeros(3)
+        tr = _mat(d, "translation", (3,), p) if "translation" in d else np.zeros(3)
+        try:
+            sc = float(d.get("scale", 1.0))
+        except (TypeError, ValueError):
+            raise InputError(f"{p}: objects[{i}].scale must be a number", param="scale") from None
+        if not (math.isfinite(sc) and sc > 0):
+            raise InputError(f"{p}: objects[{i}].scale must be > 0", param="scale")
+        mp = Path(d["mesh"]) if Path(d["mesh"]).is_absolute() else p.parent / d["mesh"]
+        mesh = load_obj(mp)
+        v = (sc * np.asarray(mesh.vertices, np.float64)) @ rotation_matrix(rot).T + tr
+        out.append(VirtualObject(str(d.get("name", mp.stem)), v, np.asarray(mesh.faces, np.int64),
+                                 tuple(alb.tolist())))  # type: ignore[arg-type]
+    return lights, out
+
+
+def _clusters(v: np.ndarray, f: np.ndarray, k: int = 4) -> tuple[np.ndarray, ...]:
+    """The object's faces grouped for the radiosity solve: a k^3 grid over its bounds times the
+    six major directions of the face normal. Returns (label per face, a point on each cluster's
+    surface (Q, 3), unit normal (Q, 3), area (Q,))."""
+    a, b, c = (v[f[:, j]] for j in range(3))
+    cr = np.cross(b - a, c - a)
+    area = 0.5 * np.linalg.norm(cr, axis=1)
+    n = cr / np.maximum(2 * area, 1e-300)[:, None]
+    cen = (a + b + c) / 3
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    cell = np.clip(((cen - lo) / np.maximum(hi - lo, 1e-12) * k).astype(np.int64), 0, k - 1)
+    ax = np.argmax(np.abs(n), axis=1)
+    sign = (n[np.arange(len(n)), ax] < 0).astype(np.int64)
+    key = ((cell[:, 0] * k + cell[:, 1]) * k + cell[:, 2]) * 6 + 2 * ax + sign
+    _, label = np.unique(key, return_inverse=True)
+    Q = int(label.max()) + 1
+    A = np.bincount(label, area, minlength=Q)
+    C = np.stack([np.bincount(label, area * cen[:, j], minlength=Q) for j in range(3)], 1) / np.maximum(A, 1e-300)[:, None]
+    Nq = np.stack([np.bincount(label, area * n[:, j], minlength=Q) for j in range(3)], 1).astype(np.float64)
+    Nq /= np.maximum(np.linalg.norm(Nq, axis=1, keepdims=True), 1e-300)
+    # a curved cluster's centroid may lie inside the mesh: it is represented by the centre of its
+    # face nearest that centroid, just off the surface along that face's normal
+    gap = np.linalg.norm(cen - C[label], axis=1)
+    order = np.lexsort((gap, label))
+    first = order[np.r_[0, np.flatnonzero(np.diff(label[order])) + 1]]
+    rep = cen[first] + 1e-3 * float(np.ptp(v, axis=0).max()) * n[first]
+    return label, rep, Nq, A
+
+
+def _mv(M: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``M @ B`` in M's float32 (no float64 copy of a (P, P) form-factor matrix per product)."""
+    return np.asarray(M @ B.astype(M.dtype), np.float64)
+
+
+def _near_segment(P: np.ndarray, q: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:
+    """Segments ``P[i] -> q`` passing within ``r`` of ``c``."""
+    from hostlink.room.kernels import near_to_point
+
+    out = np.zeros(len(P), np.bool_)
+    near_to_point(np.ascontiguousarray(P, np.float64), np.asarray(q, np.float64), np.asarray(c, np.float64),
+                  float(r), out)
     return out
 
 
@@ -227,11 +326,16 @@ class Room:
             self.captures.append((p.stem, p, lights))
         self._geo: dict[tuple[tuple[float, float, float], float], tuple[np.ndarray, np.ndarray]] = {}
         self._F: np.ndarray | None = None
+        self._pairs: tuple[np.ndarray, ...] | None = None   # (i, j) with F[i, j] > 0
+        self._F_rows: np.ndarray | None = None
+        self._last_B: tuple[tuple[Light, ...], np.ndarray] | None = None
+        self._tri = np.ascontiguousarray(np.stack([self.v[self.f[:, k]] for k in range(3)], axis=1))   # (P, 3, 3)
         self._unit: dict[Light, np.ndarray] = {}
         self._unit_key: bytes | None = None
         self.reflectance: np.ndarray | None = None
         self.confidence: np.ndarray | None = None
         self.patch_reflectance: np.ndarray | None = None
+        self.object_mask: np.ndarray | None = None     # pixels the last render's objects cover
 
     # ---- geometry ------------------------------------------------------------------------------
     def _orient_patches(self) -> None:
@@ -264,12 +368,13 @@ class Room:
             self._geo[key] = g
         return g
 
-    def _irradiance(self, L: Light, P: np.ndarray, N: np.ndarray) -> np.ndarray:
+    def _irradiance(self, L: Light, P: np.ndarray, N: np.ndarray, es: Any = None) -> np.ndarray:
         """Irradiance per watt at points ``P`` with normals ``N``: a uniformly emitting sphere's
         field is its centre's, ``1 / (4 pi d^2)`` at distance d; the cosine and the visibility
         averaged over the points of the cap facing the receiver (of ``light_samples`` x 2
-        Fibonacci points on the sphere), one shadow ray each, so a sphere partly below a
-        receiver's horizon or partly hidden lights it partly."""
+        Fibonacci points on the sphere), one shadow ray each (adaptively: the rest only where the
+        first quarter disagree), so a sphere partly below a receiver's horizon or partly hidden
+        lights it partly."""
         m = self.light_samples
         k = np.arange(2 * m) + 0.5
         z = 1 - 2 * k / (2 * m)
@@ -283,7 +388,16 @@ class Room:
         S = c + L.radius * u
         free = np.zeros(len(P))
         cnt = np.zeros(len(P))
-        for j in range(len(u)):
+        # adaptive (the paper's adaptive rays to an area light): every 4th point first; a receiver
+        # whose first rays all agree (wholly lit or wholly hidden) takes that answer for the rest
+        first = np.arange(len(u)) % 4 == 0
+        n_free = np.zeros(len(P), np.int64)
+        n_ray = np.zeros(len(P), np.int64)
+        uniform = np.zeros(len(P), bool)
+        rest = int(np.flatnonzero(~first)[0])
+        for j in [*np.flatnonzero(first), *np.flatnonzero(~first)]:
+            if j == rest:
+                uniform = (n_ray >= 2) & ((n_free == 0) | (n_free == n_ray))
             sel = np.flatnonzero(facing[:, j] & (cos_c > -L.radius / np.maximum(dc, 1e-12)))
             if not len(sel):
                 continue
@@ -293,20 +407,40 @@ class Room:
             cj = np.einsum("ij,ij->i", N[sel], wd)
             up = cj > 0
             occ = np.ones(len(sel), bool)
-            s_up = sel[up]
-            occ[up] = self._occluded(P[s_up] + self.eps * N[s_up], wd[up], dj[up] - 2 * self.eps)
+            trace = up & ~uniform[sel]
+            s_tr = sel[trace]
+            occ[trace] = self._occluded(P[s_tr] + self.eps * N[s_tr], wd[trace], dj[trace] - 2 * self.eps, es)
+            guess = up & uniform[sel]
+            occ[guess] = n_free[sel[guess]] == 0
+            if first[j]:
+                n_ray[s_tr] += 1
+                n_free[s_tr] += ~occ[trace]
             free[sel] += np.where(occ, 0.0, np.maximum(cj, 0.0))
             cnt[sel] += 1
         # cosine per sample (a sphere across the horizon lights the receiver partly), distance
         # to the centre (the sphere's field; distances to its surface points overstate it)
         return np.where(cnt > 0, free / np.maximum(cnt, 1), 0.0) / (4 * math.pi * np.maximum(dc, 1e-12) ** 2)
 
-    def _occluded(self, o: np.ndarray, d: np.ndarray, tfar: np.ndarray) -> np.ndarray:
-        if not len(o):
+    def _occluded(self, o: np.ndarray, d: np.ndarray, tfar: np.ndarray, es: Any = None) -> np.ndarray:
+        """Occlusion of the segments ``o + t d``, ``t < tfar`` (two threads: Embree releases the GIL)."""
+        n = len(o)
+        if not n:
             return np.zeros(0, bool)
-        r = self._es.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
-                         dists=np.ascontiguousarray(np.maximum(tfar, 0), np.float32), query="OCCLUDED")
-        return np.asarray(r) == 0
+        scene = es or self._es
+        o32, d32 = np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32)
+        t32 = np.ascontiguousarray(np.maximum(tfar, 0), np.float32)
+
+        def part(a: int, b: int) -> np.ndarray:
+            return np.asarray(scene.run(o32[a:b], d32[a:b], dists=t32[a:b], query="OCCLUDED")) == 0
+
+        if n < 16384:
+            return part(0, n)
+        from concurrent.futures import ThreadPoolExecutor
+
+        h = n // 2
+        with ThreadPoolExecutor(2) as ex:
+            lo, hi = ex.submit(part, 0, h), ex.submit(part, h, n)
+            return np.concatenate([lo.result(), hi.result()])
 
     def form_factors(self) -> np.ndarray:
         """(P, P) form factors from each patch centre to every patch: the exact unoccluded polygon
@@ -338,18 +472,21 @@ class Room:
         triangle, exact for a triangle above the receiver's horizon (Lambert's contour integral:
         ``1 / 2 pi sum_edges angle_i n . (R_i x R_i+1) / |R_i x R_i+1|``); near patches, where a
         point-to-point form factor fails, get their true share."""
-        x, n = self.pc[rows], self.pn[rows]
-        V = [self.v[self.f[:, k]] for k in range(3)]
-        R = [V[k][None] - x[:, None] for k in range(3)]
-        R = [r / np.maximum(np.linalg.norm(r, axis=-1, keepdims=True), 1e-300) for r in R]
-        acc = np.zeros((len(rows), len(self.f)))
-        for k in range(3):
-            a, b = R[k], R[(k + 1) % 3]
-            cr = np.cross(a, b)
-            ln = np.linalg.norm(cr, axis=-1)
-            ang = np.arccos(np.clip(np.einsum("rpk,rpk->rp", a, b), -1, 1))
-            acc += ang * np.einsum("rpk,rk->rp", cr, n) / np.maximum(ln, 1e-300)
-        return np.abs(acc) / (2 * math.pi)
+        return self._polygon_ff_at(self.pc[rows], self.pn[rows])
+
+    def _polygon_ff_at(self, x: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """(r, P) unoccluded form factors from points ``x`` with normals ``n`` to every patch."""
+        return np.abs(np.einsum("rpk,rk->rp", self._polygon_ff_vectors(x), n))
+
+    def _polygon_ff_vectors(self, x: np.ndarray) -> np.ndarray:
+        """(r, P, 3) Lambert's vectors ``g`` of every patch seen from points ``x``: the form factor
+        to a receiver of normal ``n`` is ``|g . n|`` while the patch lies above its horizon
+        (:func:`hostlink.room.kernels.polygon_ff_vectors`)."""
+        from hostlink.room.kernels import polygon_ff_vectors
+
+        out = np.empty((len(x), len(self.f), 3))
+        polygon_ff_vectors(np.ascontiguousarray(x, np.float64), self._tri, out)
+        return out
 
     def _solve(self, Ed_patch: np.ndarray, rho_patch: np.ndarray, known: np.ndarray | None = None,
                B_known: np.ndarray | None = None, iters: int = 40) -> np.ndarray:
@@ -359,7 +496,7 @@ class Room:
         if known is not None and B_known is not None:
             B[known] = B_known[known]
         for _ in range(iters):       # Jacobi; stops when a sweep changes B by under 1e-5 of its max
-            nb = rho_patch / math.pi * (Ed_patch + math.pi * (F @ B))
+            nb = rho_patch / math.pi * (Ed_patch + math.pi * _mv(F, B))
             if known is not None and B_known is not None:
                 nb[known] = B_known[known]
             done = float(np.abs(nb - B).max()) <= 1e-5 * max(float(np.abs(nb).max()), 1e-300)
@@ -423,7 +560,7 @@ class Room:
                 known = cu > 0
                 Bm[known] /= cu[known, None]
                 Bp = self._solve(Ed_patch, rho_patch, known, Bm)
-                Ei = math.pi * (self.form_factors() @ Bp)[self.patch] if indirect else np.zeros_like(Ed_pix)
+                Ei = math.pi * _mv(self.form_factors(), Bp)[self.patch] if indirect else np.zeros_like(Ed_pix)
                 den = Ed_pix + Ei
                 with np.errstate(divide="ignore", invalid="ignore"):
                     rk = np.where(den > 1e-12, math.pi * B / den, 0.0)
@@ -519,15 +656,20 @@ class Room:
         return img
 
     # ---- relighting ----------------------------------------------------------------------------
-    def render(self, lights: list[Light], where: str | Path = "lights") -> np.ndarray:
-        """The room (H, W, 3) radiance under ``lights`` with the recovered reflectance; ``where``
-        names their source in errors (the EDITS.json file)."""
+    def render(self, lights: list[Light], where: str | Path = "lights",
+               objects: list[VirtualObject] | tuple[VirtualObject, ...] = ()) -> np.ndarray:
+        """The room (H, W, 3) radiance under ``lights`` with the recovered reflectance, with
+        ``objects`` inserted (their shadows on the room, their light on it and their own shading);
+        ``where`` names the lights' source in errors (the EDITS.json file)."""
         if self.reflectance is None or self.patch_reflectance is None:
             self.recover()
         if self.reflectance is None or self.patch_reflectance is None:
             raise InputError("no reflectance: recover() first", param="reflectance")
         for L in lights:
             self._check_light(L, Path(where))
+        self.object_mask = None
+        if objects:
+            return self._render_with(lights, list(objects))
         # light is linear: per light geometry (position, radius), the irradiance per watt of each
         # channel, direct + indirect through the radiosity solve, is cached; a power change is a sum
         key = self.patch_reflectance.tobytes()
@@ -540,9 +682,154 @@ class Room:
             if u is None:
                 gp, gq = self._geometry(geo)
                 Bp = self._solve(np.repeat(gq[:, None], 3, axis=1), self.patch_reflectance)
-                u = self._unit[geo] = gp[:, None] + math.pi * (self.form_factors() @ Bp)[self.patch]
+                u = self._unit[geo] = gp[:, None] + math.pi * _mv(self.form_factors(), Bp)[self.patch]
             acc += u * np.asarray(L.rgb)
         return self._image(self.reflectance / math.pi * acc)
+
+    def _render_with(self, lights: list[Light], objects: list[VirtualObject]) -> np.ndarray:
+        """:meth:`render` with virtual objects (Loscos et al. 1999, section 5: a virtual object
+        casts shadows on real surfaces and takes part in the light exchange). Only what the
+        objects can change is recomputed (the paper's shaft idea, with the objects' bounding
+        sphere as the shaft's end): a pixel's or patch's direct light from a lamp only where the
+        segment to the lamp passes the sphere, a form factor only where the ray between patch
+        centres does. The objects join the radiosity solve as clusters of their faces (a k^3
+        grid times the six normal directions: :func:`_clusters`): the room's patches see them
+        (point-to-disc form factors, one visibility ray), they see the room (polygon form
+        factors, one ray each); the objects' light on themselves is left out."""
+        from hostlink.relight.precompute import build_embree
+
+        assert self.reflectance is not None
+        assert self.patch_reflectance is not None
+        ov = np.concatenate([o.vertices for o in objects])
+        base = np.cumsum([0] + [len(o.vertices) for o in objects])
+        of = np.concatenate([o.faces + base[k] for k, o in enumerate(objects)])
+        falb = np.concatenate([np.repeat(np.asarray(o.albedo, np.float64)[None], len(o.faces), axis=0) for o in objects])
+        if not (np.isfinite(ov).all() and len(of)):
+            raise InputError("a virtual object has no faces or non-finite vertices", param="objects")
+        es = build_embree([(self.v, self.f), (ov, of)])
+        c_o = (ov.min(axis=0) + ov.max(axis=0)) / 2
+        r_o = float(np.linalg.norm(ov - c_o, axis=1).max())
+        # the camera: which covered pixels now show an object (nearer than the room)
+        tri_o, bary_o = _raster_cv(self.cam, ov, of)
+        H, W = self.cam.height, self.cam.width
+        room_z = np.full((H, W), np.inf)
+        room_z[self.cover] = (self.X @ self.cam.R.T + self.cam.t)[:, 2]
+        hit = tri_o >= 0
+        Xo_all = np.einsum("pk,pkj->pj", bary_o[hit].astype(np.float64), ov[of[tri_o[hit]]])
+        zo = (Xo_all @ self.cam.R.T + self.cam.t)[:, 2]
+        front = zo < room_z[hit] * (1 - 1e-6)
+        obj_mask = np.zeros((H, W), bool)
+        obj_mask.flat[np.flatnonzero(hit)[front]] = True
+        t_obj = tri_o[obj_mask]
+        Xo = np.einsum("pk,pkj->pj", bary_o[obj_mask].astype(np.float64), ov[of[t_obj]])
+        a, b, c = (ov[of[:, j]] for j in range(3))
+        fn = np.cross(b - a, c - a)
+        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+        No = fn[t_obj]
+        No = np.where((np.einsum("ij,ij->i", No, self.cam.center - Xo) < 0)[:, None], -No, No)
+        label, cc, cn, ca = _clusters(ov, of)
+        calb = np.stack([np.bincount(label, falb[:, j] * 1.0, minlength=len(cc)) for j in range(3)], 1) \
+            / np.maximum(np.bincount(label, minlength=len(cc)), 1)[:, None]
+        # direct light, each lamp: cached unoccluded-by-objects terms, re-traced inside the shaft
+        P = len(self.f)
+        Ed_pix = np.zeros((len(self.X), 3))
+        Ed_patch = np.zeros((P, 3))
+        Ed_c = np.zeros((len(cc), 3))
+        Ed_o = np.zeros((len(Xo), 3))
+        for L in lights:
+            gp, gq = self._geometry(L)
+            gp, gq = gp.copy(), gq.copy()
+            lc, reach = np.asarray(L.position), r_o + L.radius
+            sp = np.flatnonzero(_near_segment(self.X, lc, c_o, reach))
+            gp[sp] = self._irradiance(L, self.X[sp], self.N[sp], es)
+            sq = np.flatnonzero(_near_segment(self.pc, lc, c_o, reach))
+            gq[sq] = self._irradiance(L, self.pc[sq], self.pn[sq], es)
+            rgb = np.asarray(L.rgb)
+            Ed_pix += np.outer(gp, rgb)
+            Ed_patch += np.outer(gq, rgb)
+            Ed_c += np.outer(self._irradiance(L, cc, cn, es), rgb)
+            Ed_o += np.outer(self._irradiance(L, Xo, No, es), rgb)
+        # form factors: the room's own, blocked where an object stands between patch centres
+        from hostlink.room.kernels import gather_room_light, near_pairs
+
+        F = self.form_factors()
+        if self._pairs is None:
+            self._pairs = tuple(np.ascontiguousarray(x, np.int64) for x in np.nonzero(F > 0))
+        ri, ci = self._pairs
+        near = np.zeros(len(ri), np.bool_)
+        near_pairs(self.pc, ri, ci, c_o, r_o, near)
+        ri, ci = ri[near], ci[near]
+        if len(ri):      # the blocked links, kept apart: F itself is not copied
+            w = self.pc[ci] - self.pc[ri]
+            dist = np.linalg.norm(w, axis=1)
+            blocked = self._occluded(self.pc[ri] + self.eps * self.pn[ri], w / dist[:, None], dist - 2 * self.eps, es)
+            ri, ci = ri[blocked], ci[blocked]
+        cut = np.asarray(F[ri, ci], np.float64)
+        # room patch -> cluster (a disc of the cluster's area) and cluster -> room patch (polygon)
+        tgt = cc
+        w = tgt[None] - self.pc[:, None]                                   # (P, Q, 3)
+        d2 = np.einsum("pqk,pqk->pq", w, w)
+        dist = np.sqrt(d2)
+        wd = w / dist[..., None]
+        cos_i = np.einsum("pqk,pk->pq", wd, self.pn)
+        cos_j = -np.einsum("pqk,qk->pq", wd, cn)
+        Frc = np.where((cos_i > 0) & (cos_j > 0), ca[None] * cos_i * cos_j / (math.pi * d2 + ca[None]), 0.0)
+        pi_, qi = np.nonzero(Frc > 0)
+        if len(pi_):
+            occ = self._occluded(self.pc[pi_] + self.eps * self.pn[pi_], wd[pi_, qi], dist[pi_, qi] * (1 - 1e-3), es)
+            Frc[pi_[occ], qi[occ]] = 0.0
+        # each cluster's view of the room: Lambert's vector per patch (the form factor to any
+        # normal, for the object's pixels) and one visibility ray per patch facing the cluster
+        G = self._polygon_ff_vectors(tgt)                                   # (Q, P, 3)
+        vis = cos_i.T > 0
+        qj, pj = np.nonzero(vis)
+        if len(qj):
+            occ = self._occluded(tgt[qj], -wd[pj, qj], dist[pj, qj] * (1 - 1e-3), es)
+            vis[qj[occ], pj[occ]] = False
+        Fcr = np.where(vis & (cos_j.T > 0), np.maximum(np.einsum("qpk,qk->qp", G, cn), 0.0), 0.0)
+        if self._F_rows is None:
+            self._F_rows = F.sum(axis=1, dtype=np.float64)
+        tot = self._F_rows - np.bincount(ri, cut, minlength=P) + Frc.sum(axis=1)   # a hemisphere at most
+        scale = 1.0 / np.maximum(tot, 1.0)
+        Frc *= scale[:, None]
+        Fcr /= np.maximum(Fcr.sum(axis=1, keepdims=True), 1.0)
+        Frc, Fcr = Frc.astype(np.float32), Fcr.astype(np.float32)
+
+        def room_light(B: np.ndarray) -> np.ndarray:     # (F without the blocked links) @ B, scaled
+            out = _mv(F, B)
+            for ch in range(3):
+                out[:, ch] -= np.bincount(ri, cut * B[ci, ch], minlength=P)
+            return out * scale[:, None]
+
+        # radiosity over the room's patches and the objects' clusters (Jacobi)
+        rho = self.patch_reflectance
+        Br = rho / math.pi * Ed_patch
+        if self._last_B is not None and self._last_B[0] == self._light_key(lights):
+            Br = self._last_B[1]          # the same lamps: start from the last frame's solution
+        Bc = calb / math.pi * Ed_c
+        for _ in range(60):
+            nr = rho / math.pi * (Ed_patch + math.pi * (room_light(Br) + _mv(Frc, Bc)))
+            nc = calb / math.pi * (Ed_c + math.pi * _mv(Fcr, Br))
+            done = max(float(np.abs(nr - Br).max()), float(np.abs(nc - Bc).max())) <= \
+                1e-5 * max(float(np.abs(nr).max()), float(np.abs(nc).max()), 1e-300)
+            Br, Bc = nr, nc
+            if done:
+                break
+        self._last_B = (self._light_key(lights), Br)
+        E_pix = Ed_pix + math.pi * (room_light(Br) + _mv(Frc, Bc))[self.patch]
+        img = self._image(self.reflectance / math.pi * E_pix)
+        # the object's pixels: their own normals against their cluster's view of the room
+        E_o = np.empty((len(No), 3))
+        gather_room_light(np.ascontiguousarray(No), np.ascontiguousarray(label[t_obj], np.int64), G, vis,
+                          np.ascontiguousarray(Br, np.float64), E_o)
+        E_o = Ed_o + math.pi * E_o
+        img[obj_mask] = (falb[t_obj] / math.pi * E_o).astype(np.float32)
+        self.object_mask = obj_mask
+        return img
+
+    @staticmethod
+    def _light_key(lights: list[Light]) -> tuple[Light, ...]:
+        return tuple(lights)
 
     def true_groups(self) -> np.ndarray:
         """(H, W) group index per pixel, -1 where there is no geometry (for tests and tools)."""
