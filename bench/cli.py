@@ -21,7 +21,8 @@ BENCHMARKS = {
     "service": "WebSocket load: pipeline fps and memory with many clients",
     "relight": "cut relighting: error and frame time (and relight_sg, and the Pareto plot of both)",
     "relight_sg": "SG relighting (no precompute): error against brute force, frame times, deformation",
-    "room": "real-room relighting at 640 x 480: recovery, light power change, light added, object inserted and moved",
+    "room": "real-room relighting at 640 x 480: recovery, light power change, light added, object inserted, "
+            "moved, a block removed",
     "fleet": "50 simulated probes at 10 Hz through one mosquitto into one merged stream: latency, CPU",
     "cluster": "cut precompute in-process against a 2-worker Dask cluster: time, identity, overhead",
     "formats": "host formats: SH + primary light irradiance error and time, GGX cube map time and error",

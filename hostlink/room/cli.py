@@ -3,8 +3,8 @@
 ``recover`` writes ``DIR/reflectance.exr`` and ``DIR/confidence.exr`` (atomically) and prints what
 it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
 captures' format: ``{"lights": [{"position", "radius", "rgb"}]}``, the whole edited set: change
-a power, add or drop a light; and ``"objects"``: virtual meshes to insert, see
-:func:`hostlink.room.room.load_edits`) and writes the room under them (``.exr`` linear, ``.png``
+a power, add or drop a light; ``"objects"``: virtual meshes to insert; ``"remove"``: room.obj
+groups to take out; see :func:`hostlink.room.room.load_edits`) and writes the room under them (``.exr`` linear, ``.png``
 tone-mapped). Bad input exits 2 naming the file.
 """
 
@@ -49,7 +49,7 @@ def _render(a: argparse.Namespace) -> int:
     out = Path(a.out)
     if out.suffix.lower() not in (".png", ".exr"):
         raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
-    lights, objects = load_edits(a.edit)
+    lights, objects, remove = load_edits(a.edit)
     t0 = time.perf_counter()
     room = _room(a.dir)
     refl = a.dir / "reflectance.exr"
@@ -57,12 +57,11 @@ def _render(a: argparse.Namespace) -> int:
         room.use_reflectance(read_hdr_image(refl), read_hdr_image(a.dir / "confidence.exr")[..., 0])
     else:
         room.recover()
-    img = room.render(lights, a.edit, objects)
-    mask = room.cover if room.object_mask is None or not objects else room.cover | room.object_mask
-    write_image(out, img, mask=mask)
+    img = room.render(lights, a.edit, objects, remove)
+    write_image(out, img, mask=room.render_cover)
     if not a.quiet:
-        print(f"room: wrote {out} ({len(lights)} lights, {len(objects)} objects, {time.perf_counter() - t0:.1f} s)",
-              file=sys.stderr)
+        print(f"room: wrote {out} ({len(lights)} lights, {len(objects)} objects, {len(remove)} groups removed, "
+              f"{time.perf_counter() - t0:.1f} s)", file=sys.stderr)
     return 0
 
 
@@ -77,7 +76,7 @@ def main(argv: list[str]) -> int:
     r.add_argument("--quiet", action="store_true")
     e = sub.add_parser("render", help="render the room under the lights of EDITS.json")
     e.add_argument("dir", type=Path)
-    e.add_argument("--edit", type=Path, required=True, help="EDITS.json: {\"lights\": [...], \"objects\": [...]}, the edited light set and virtual meshes")
+    e.add_argument("--edit", type=Path, required=True, help="EDITS.json: {\"lights\": [...], \"objects\": [...], \"remove\": [...]}: lights, virtual meshes, groups removed")
     e.add_argument("--out", required=True, help="IMAGE.exr (linear) or IMAGE.png (tone-mapped)")
     e.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)

@@ -40,9 +40,12 @@ What it does (the paper's steps; the choices it leaves open, and ours):
   of their faces, so they reflect light onto the room and take the room's light themselves; an
   object's pixel is shaded with its own normal against its cluster's view of the room. A moved
   object is the same computation with the last frame's radiosity as the start.
+- **Real objects removed** (``EDITS.json`` ``"remove"``: room.obj groups): the camera sees what
+  they hid; its reflectance, never photographed, is refilled from the same surface around it by
+  a normalised convolution (a smooth fill; the paper uses texture synthesis), and their shadows
+  and blocked form factors are redone inside the shaft to their bounding sphere.
 
-Not built: real objects removed (texture synthesis on the reflectance), lights found from
-probes' peaks, the ambient-only indirect estimate.
+Not built: lights found from probes' peaks, the ambient-only indirect estimate.
 """
 
 from __future__ import annotations
@@ -157,11 +160,12 @@ class VirtualObject:
     albedo: tuple[float, float, float]
 
 
-def load_edits(path: str | Path) -> tuple[list[Light], list[VirtualObject]]:
+def load_edits(path: str | Path) -> tuple[list[Light], list[VirtualObject], list[str]]:
     """EDITS.json: ``{"lights": [...], "objects": [{"mesh": "spot.obj", "albedo": [r, g, b],
-    "scale": s, "rotation": [x, y, z], "translation": [x, y, z]}]}``: the whole edited light set
-    (the captures' format) and virtual meshes to insert (OBJ paths relative to the file; each
-    scaled about its own origin, rotated by XYZ Euler degrees, then translated)."""
+    "scale": s, "rotation": [x, y, z], "translation": [x, y, z]}], "remove": ["short_block"]}``:
+    the whole edited light set (the captures' format), virtual meshes to insert (OBJ paths
+    relative to the file; each scaled about its own origin, rotated by XYZ Euler degrees, then
+    translated) and room.obj groups to remove."""
     from hostlink.relight.scene import load_obj, rotation_matrix
 
     p = Path(path)
@@ -190,7 +194,10 @@ def load_edits(path: str | Path) -> tuple[list[Light], list[VirtualObject]]:
         v = (sc * np.asarray(mesh.vertices, np.float64)) @ rotation_matrix(rot).T + tr
         out.append(VirtualObject(str(d.get("name", mp.stem)), v, np.asarray(mesh.faces, np.int64),
                                  tuple(alb.tolist())))  # type: ignore[arg-type]
-    return lights, out
+    rem = doc.get("remove", [])
+    if not isinstance(rem, list) or not all(isinstance(x, str) for x in rem):
+        raise InputError(f"{p}: 'remove' must be a list of room.obj group names", param="remove")
+    return lights, out, rem
 
 
 def _clusters(v: np.ndarray, f: np.ndarray, k: int = 4) -> tuple[np.ndarray, ...]:
@@ -336,6 +343,7 @@ class Room:
         self.confidence: np.ndarray | None = None
         self.patch_reflectance: np.ndarray | None = None
         self.object_mask: np.ndarray | None = None     # pixels the last render's objects cover
+        self.render_cover: np.ndarray = self.cover      # pixels the last render shaded
 
     # ---- geometry ------------------------------------------------------------------------------
     def _orient_patches(self) -> None:
@@ -657,10 +665,12 @@ class Room:
 
     # ---- relighting ----------------------------------------------------------------------------
     def render(self, lights: list[Light], where: str | Path = "lights",
-               objects: list[VirtualObject] | tuple[VirtualObject, ...] = ()) -> np.ndarray:
+               objects: list[VirtualObject] | tuple[VirtualObject, ...] = (),
+               remove: list[str] | tuple[str, ...] = ()) -> np.ndarray:
         """The room (H, W, 3) radiance under ``lights`` with the recovered reflectance, with
-        ``objects`` inserted (their shadows on the room, their light on it and their own shading);
-        ``where`` names the lights' source in errors (the EDITS.json file)."""
+        ``objects`` inserted (their shadows on the room, their light on it and their own shading)
+        or the room.obj groups ``remove`` taken out (what they hid refilled); ``where`` names the
+        edit's file in errors (EDITS.json). Sets ``render_cover``: the pixels it shaded."""
         if self.reflectance is None or self.patch_reflectance is None:
             self.recover()
         if self.reflectance is None or self.patch_reflectance is None:
@@ -668,8 +678,20 @@ class Room:
         for L in lights:
             self._check_light(L, Path(where))
         self.object_mask = None
+        self.render_cover = self.cover
+        if objects and remove:
+            raise InputError(f"{where}: insert objects or remove groups, not both in one edit", param="remove")
+        if remove:
+            unknown = [n for n in remove if n not in self.group_names]
+            if unknown:
+                raise InputError(f"{where}: no group {unknown[0]!r} in room.obj (groups: "
+                                 f"{', '.join(n for n in self.group_names if n != 'default')})", param="remove")
+            return self._render_removed(lights, [self.group_names.index(n) for n in remove])
         if objects:
-            return self._render_with(lights, list(objects))
+            img = self._render_with(lights, list(objects))
+            assert self.object_mask is not None
+            self.render_cover = self.cover | self.object_mask
+            return img
         # light is linear: per light geometry (position, radius), the irradiance per watt of each
         # channel, direct + indirect through the radiosity solve, is cached; a power change is a sum
         key = self.patch_reflectance.tobytes()
@@ -826,6 +848,121 @@ class Room:
         img[obj_mask] = (falb[t_obj] / math.pi * E_o).astype(np.float32)
         self.object_mask = obj_mask
         return img
+
+    def _render_removed(self, lights: list[Light], gids: list[int]) -> np.ndarray:
+        """:meth:`render` with the faces of groups ``gids`` taken out of the room (the paper's
+        object removal). The camera sees what they hid: a surface the captures never showed
+        there, so its reflectance is refilled from the same surface around it (a normalised
+        convolution of that surface's confident pixels at the finest scale that reaches the
+        hole: a smooth fill, not the paper's texture synthesis). Only what the removal changes is recomputed, with the
+        removed faces' bounding sphere as the shaft's end: a lamp's light where its segment to a
+        pixel or patch passes the sphere (their shadows go), the form factors of links passing
+        it (those the removed faces blocked come back, exact polygon form factors and a ray)."""
+        import cv2
+
+        from hostlink.relight.precompute import build_embree
+
+        assert self.reflectance is not None
+        assert self.patch_reflectance is not None
+        keep = ~np.isin(self.fgroup, gids)
+        kidx = np.flatnonzero(keep)
+        gone = self.v[np.unique(self.f[~keep])]
+        c_b = (gone.min(axis=0) + gone.max(axis=0)) / 2
+        r_b = float(np.linalg.norm(gone - c_b, axis=1).max())
+        es = build_embree([(self.v, self.f[keep])])
+        slot = np.full(len(self.f), -1)
+        slot[kidx] = np.arange(len(kidx))
+        # the camera's new view: pixels that show the same patch as before keep their reflectance
+        tri, bary = _raster_cv(self.cam, self.v, self.f[keep])
+        cover = tri >= 0
+        patch = kidx[tri[cover]]
+        X = np.einsum("pk,pkj->pj", bary[cover].astype(np.float64), self.v[self.f[patch]])
+        N = self.pn[patch]
+        N = np.where((np.einsum("ij,ij->i", N, self.cam.center - X) < 0)[:, None], -N, N)
+        H, W = self.cam.height, self.cam.width
+        old = np.full((H, W), -1)
+        old[self.cover] = np.arange(len(self.X))
+        was = old[cover]
+        same = (was >= 0) & (self.patch[np.maximum(was, 0)] == patch)
+        rho = np.zeros((len(patch), 3))
+        rho[same] = self.reflectance[was[same]]
+        revealed = ~same
+        if revealed.any():
+            conf = np.zeros(len(patch))
+            conf[same] = self.confidence[was[same]] if self.confidence is not None else 1.0
+            grp = self.fgroup[patch]
+            flat = np.flatnonzero(cover)
+            for g in np.unique(grp[revealed]):
+                rows = revealed & (grp == g)
+                src = same & (grp == g) & (conf > 0)
+                if not src.any():      # a surface never seen at all: its group's reflectance
+                    rho[rows] = self.patch_reflectance[patch[rows]]
+                    continue
+                # normalised convolution (Knutsson, Westin 1993) of the surface's own confident
+                # reflectance: at each hole pixel the finest Gaussian scale that reaches it
+                wimg = np.zeros((H, W), np.float32)
+                wimg.flat[flat[src]] = conf[src]
+                acc = np.zeros((H, W, 3), np.float32)
+                acc.reshape(-1, 3)[flat[src]] = rho[src] * conf[src, None]
+                todo = flat[rows]
+                fill = np.zeros((len(todo), 3))
+                left = np.ones(len(todo), bool)
+                for sigma in (2.0, 4.0, 8.0, 16.0, 32.0, 64.0):
+                    wb = cv2.GaussianBlur(wimg, (0, 0), sigma).ravel()[todo]
+                    ab = cv2.GaussianBlur(acc, (0, 0), sigma).reshape(-1, 3)[todo]
+                    ok = left & (wb > 1e-3)
+                    fill[ok] = ab[ok] / wb[ok, None]
+                    left &= ~ok
+                    if not left.any():
+                        break
+                fill[left] = self.patch_reflectance[patch[rows]][left]
+                rho[rows] = fill
+        # direct light: the cached terms, re-traced inside the shafts to the removed faces
+        Ed_pix = np.zeros((len(patch), 3))
+        Ed_patch = np.zeros((len(kidx), 3))
+        for L in lights:
+            gp, gq = self._geometry(L)
+            g_pix = np.where(same, gp[np.maximum(was, 0)], 0.0)
+            lc, reach = np.asarray(L.position), r_b + L.radius
+            redo = np.flatnonzero(~same | _near_segment(X, lc, c_b, reach))
+            g_pix[redo] = self._irradiance(L, X[redo], N[redo], es)
+            g_q = gq[kidx].copy()
+            sq = np.flatnonzero(_near_segment(self.pc[kidx], lc, c_b, reach))
+            g_q[sq] = self._irradiance(L, self.pc[kidx[sq]], self.pn[kidx[sq]], es)
+            Ed_pix += np.outer(g_pix, L.rgb)
+            Ed_patch += np.outer(g_q, L.rgb)
+        # form factors among the kept patches; links passing the removed faces' sphere redone
+        F = self.form_factors()[np.ix_(kidx, kidx)].astype(np.float32)
+        pc, pn = self.pc[kidx], self.pn[kidx]
+        for s0 in range(0, len(kidx), 256):
+            rows = np.arange(s0, min(len(kidx), s0 + 256))
+            w = pc[None] - pc[rows, None]
+            d = np.linalg.norm(w, axis=-1)
+            t = np.clip(np.einsum("rpk,rk->rp", w, c_b - pc[rows]) / np.maximum(d * d, 1e-300), 0, 1)
+            near = np.linalg.norm(pc[rows, None] + t[..., None] * w - c_b, axis=-1) <= r_b
+            wd = w / np.maximum(d, 1e-300)[..., None]
+            near &= (np.einsum("rpk,rk->rp", wd, pn[rows]) > 0) & (np.einsum("rpk,pk->rp", wd, pn) < 0)
+            near[np.arange(len(rows)), rows] = False
+            ri, ci = np.nonzero(near)
+            if not len(ri):
+                continue
+            ff = self._polygon_ff_at(pc[rows], pn[rows])[:, kidx][ri, ci]
+            occ = self._occluded(pc[rows[ri]] + self.eps * pn[rows[ri]], wd[ri, ci], d[ri, ci] - 2 * self.eps, es)
+            F[rows[ri], ci] = np.where(occ, 0.0, ff)
+        F /= np.maximum(F.sum(axis=1, dtype=np.float64), 1.0).astype(np.float32)[:, None]
+        rho_p = self.patch_reflectance[kidx]
+        B = rho_p / math.pi * Ed_patch
+        for _ in range(60):
+            nb = rho_p / math.pi * (Ed_patch + math.pi * _mv(F, B))
+            done = float(np.abs(nb - B).max()) <= 1e-5 * max(float(np.abs(nb).max()), 1e-300)
+            B = nb
+            if done:
+                break
+        E = Ed_pix + math.pi * _mv(F, B)[slot[patch]]
+        out = np.zeros((H, W, 3), np.float32)
+        out[cover] = rho / math.pi * E
+        self.render_cover = cover
+        return out
 
     @staticmethod
     def _light_key(lights: list[Light]) -> tuple[Light, ...]:
