@@ -21,16 +21,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.room import ALBEDO, EYE, FOV, LAMPS, TARGET
 from device.core.errors import InputError
 
 pytestmark = pytest.mark.slow
 
 W, H, SPP = 96, 72, 256
-ALBEDO = {"white": [0.7, 0.7, 0.7], "red": [0.63, 0.065, 0.05], "green": [0.14, 0.45, 0.09],
-          "light": [0.78, 0.78, 0.78]}
-CAPTURES = [[0.15, 0.45, 0.20], [0.42, 0.45, 0.20], [0.28, 0.30, 0.10], [0.12, 0.20, 0.40], [0.45, 0.25, 0.45]]
-EYE, TARGET = np.array([0.278, 0.273, -0.80]), np.array([0.278, 0.273, 0.28])
-FOV = 39.3
+CAPTURES = LAMPS[:5]
 
 
 def _lamp(p: list[float], rgb: list[float]) -> dict:
@@ -77,32 +74,12 @@ def _mitsuba(d: Path, mats: dict[str, str], lights: list[dict], seed: int, spp: 
 
 @pytest.fixture(scope="module")
 def room_dir(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
+    from bench.room import build_room
     from device.core.imageio import write_exr
 
     d = tmp_path_factory.mktemp("room")
     (d / "captures").mkdir()
-    lines, mats, cur = [], {}, ""
-    for line in (shared_data / "meshes" / "cornell_box.obj").read_text().splitlines():
-        p = line.split("#", 1)[0].split()
-        if not p:
-            continue
-        if p[0] == "v":
-            lines.append(f"v {float(p[1]) / 1000} {float(p[2]) / 1000} {float(p[3]) / 1000}")
-        elif p[0] == "o":
-            cur = p[1]
-            lines.append(f"o {cur}")
-        elif p[0] == "usemtl":
-            mats[cur] = p[1]
-        elif p[0] == "f":
-            lines.append(" ".join(p))
-    (d / "room.obj").write_text("\n".join(lines) + "\n")
-    f = (TARGET - EYE) / np.linalg.norm(TARGET - EYE)
-    x = np.cross(f, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(f, x), f])              # OpenCV: x right, y down, z forward
-    fy = (H / 2) / math.tan(math.radians(FOV) / 2)
-    (d / "camera.json").write_text(json.dumps({"K": [[fy, 0, W / 2 - 0.5], [0, fy, H / 2 - 0.5], [0, 0, 1]],
-                                               "R": R.tolist(), "t": (-R @ EYE).tolist(), "width": W, "height": H}))
+    mats = build_room(d, W, H)          # room.obj (the Cornell box in metres) and camera.json
     for k, pos in enumerate(CAPTURES):
         lights = [_lamp(pos, [2.0, 2.0, 2.0])]
         write_exr(d / "captures" / f"c{k}.exr", _mitsuba(d, mats, lights, k))

@@ -826,7 +826,7 @@ class Room:
         # radiosity over the room's patches and the objects' clusters (Jacobi)
         rho = self.patch_reflectance
         Br = rho / math.pi * Ed_patch
-        if self._last_B is not None and self._last_B[0] == self._light_key(lights):
+        if self._last_B is not None and self._last_B[0] == tuple(lights):
             Br = self._last_B[1]          # the same lamps: start from the last frame's solution
         Bc = calb / math.pi * Ed_c
         for _ in range(60):
@@ -837,7 +837,7 @@ class Room:
             Br, Bc = nr, nc
             if done:
                 break
-        self._last_B = (self._light_key(lights), Br)
+        self._last_B = (tuple(lights), Br)
         E_pix = Ed_pix + math.pi * (room_light(Br) + _mv(Frc, Bc))[self.patch]
         img = self._image(self.reflectance / math.pi * E_pix)
         # the object's pixels: their own normals against their cluster's view of the room
@@ -963,10 +963,6 @@ class Room:
         out[cover] = rho / math.pi * E
         self.render_cover = cover
         return out
-
-    @staticmethod
-    def _light_key(lights: list[Light]) -> tuple[Light, ...]:
-        return tuple(lights)
 
     def true_groups(self) -> np.ndarray:
         """(H, W) group index per pixel, -1 where there is no geometry (for tests and tools)."""
