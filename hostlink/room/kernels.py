@@ -87,3 +87,36 @@ def gather_room_light(n: np.ndarray, lab: np.ndarray, G: np.ndarray, vis: np.nda
                     s1 += f * B[p, 1]
                     s2 += f * B[p, 2]
         out[i, 0], out[i, 1], out[i, 2] = s0, s1, s2
+
+
+@njit(cache=True, parallel=True)
+def sphere_light_rays(P: np.ndarray, N: np.ndarray, S: np.ndarray, U: np.ndarray, c: np.ndarray,
+                      radius: float, eps: float, cols: np.ndarray, o: np.ndarray, d: np.ndarray,
+                      t: np.ndarray, cos: np.ndarray, state: np.ndarray) -> None:
+    """The shadow rays from receivers ``P`` (normals ``N``) to the sample points ``S[cols]`` of a
+    spherical light (centre ``c``, unit offsets ``U``): ``state[i, k]`` 0 where the sample is on
+    the far side of the sphere from the receiver or the sphere wholly below its horizon (not
+    counted), 1 a ray to trace (origin ``o``, unit direction ``d``, length ``t``, cosine ``cos``),
+    2 a sample below the receiver's horizon (counted, dark)."""
+    for i in prange(P.shape[0]):
+        tx, ty, tz = c[0] - P[i, 0], c[1] - P[i, 1], c[2] - P[i, 2]
+        dc = max(np.sqrt(tx * tx + ty * ty + tz * tz), 1e-12)
+        cos_c = (N[i, 0] * tx + N[i, 1] * ty + N[i, 2] * tz) / dc
+        for k in range(cols.shape[0]):
+            j = cols[k]
+            st = 0
+            if -(tx * U[j, 0] + ty * U[j, 1] + tz * U[j, 2]) / dc > 0 and cos_c > -radius / dc:
+                wx, wy, wz = S[j, 0] - P[i, 0], S[j, 1] - P[i, 1], S[j, 2] - P[i, 2]
+                dj = np.sqrt(wx * wx + wy * wy + wz * wz)
+                wx, wy, wz = wx / dj, wy / dj, wz / dj
+                cj = N[i, 0] * wx + N[i, 1] * wy + N[i, 2] * wz
+                st = 2
+                if cj > 0:
+                    st = 1
+                    o[i, k, 0] = P[i, 0] + eps * N[i, 0]
+                    o[i, k, 1] = P[i, 1] + eps * N[i, 1]
+                    o[i, k, 2] = P[i, 2] + eps * N[i, 2]
+                    d[i, k, 0], d[i, k, 1], d[i, k, 2] = wx, wy, wz
+                    t[i, k] = max(dj - 2 * eps, 0.0)
+                    cos[i, k] = cj
+            state[i, k] = st

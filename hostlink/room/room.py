@@ -383,51 +383,51 @@ class Room:
         Fibonacci points on the sphere), one shadow ray each (adaptively: the rest only where the
         first quarter disagree), so a sphere partly below a receiver's horizon or partly hidden
         lights it partly."""
+        from hostlink.room.kernels import sphere_light_rays
+
         m = self.light_samples
         k = np.arange(2 * m) + 0.5
         z = 1 - 2 * k / (2 * m)
         ph = k * math.pi * (3 - math.sqrt(5))
         u = np.stack([np.sqrt(1 - z * z) * np.cos(ph), z, np.sqrt(1 - z * z) * np.sin(ph)], 1)
-        c = np.asarray(L.position)
-        toc = c - P
-        dc = np.linalg.norm(toc, axis=1)
-        cos_c = np.einsum("ij,ij->i", N, toc) / np.maximum(dc, 1e-12)
-        facing = (-toc / np.maximum(dc, 1e-12)[:, None]) @ u.T > 0      # the cap each receiver sees
+        c = np.asarray(L.position, np.float64)
         S = c + L.radius * u
-        free = np.zeros(len(P))
-        cnt = np.zeros(len(P))
+        P = np.ascontiguousarray(P, np.float64)
+        N = np.ascontiguousarray(N, np.float64)
+        dc = np.linalg.norm(c - P, axis=1)
         # adaptive (the paper's adaptive rays to an area light): every 4th point first; a receiver
         # whose first rays all agree (wholly lit or wholly hidden) takes that answer for the rest
-        first = np.arange(len(u)) % 4 == 0
-        n_free = np.zeros(len(P), np.int64)
-        n_ray = np.zeros(len(P), np.int64)
-        uniform = np.zeros(len(P), bool)
-        rest = int(np.flatnonzero(~first)[0])
-        for j in [*np.flatnonzero(first), *np.flatnonzero(~first)]:
-            if j == rest:
-                uniform = (n_ray >= 2) & ((n_free == 0) | (n_free == n_ray))
-            sel = np.flatnonzero(facing[:, j] & (cos_c > -L.radius / np.maximum(dc, 1e-12)))
-            if not len(sel):
-                continue
-            w = S[j] - P[sel]
-            dj = np.linalg.norm(w, axis=1)
-            wd = w / dj[:, None]
-            cj = np.einsum("ij,ij->i", N[sel], wd)
-            up = cj > 0
-            occ = np.ones(len(sel), bool)
-            trace = up & ~uniform[sel]
-            s_tr = sel[trace]
-            occ[trace] = self._occluded(P[s_tr] + self.eps * N[s_tr], wd[trace], dj[trace] - 2 * self.eps, es)
-            guess = up & uniform[sel]
-            occ[guess] = n_free[sel[guess]] == 0
-            if first[j]:
-                n_ray[s_tr] += 1
-                n_free[s_tr] += ~occ[trace]
-            free[sel] += np.where(occ, 0.0, np.maximum(cj, 0.0))
-            cnt[sel] += 1
+        stages = (np.flatnonzero(np.arange(len(u)) % 4 == 0), np.flatnonzero(np.arange(len(u)) % 4 != 0))
+        out = np.zeros(len(P))
+        for s0 in range(0, len(P), 32768):
+            Pc, Nc = P[s0:s0 + 32768], N[s0:s0 + 32768]
+            n = len(Pc)
+            free, cnt = np.zeros(n), np.zeros(n)
+            n_free, n_ray = np.zeros(n, np.int64), np.zeros(n, np.int64)
+            for stage, cols in enumerate(stages):
+                m_ = len(cols)
+                o, d, t = np.empty((n, m_, 3)), np.empty((n, m_, 3)), np.empty((n, m_))
+                cos, st = np.zeros((n, m_)), np.empty((n, m_), np.uint8)
+                sphere_light_rays(Pc, Nc, S, u, c, float(L.radius), float(self.eps), cols, o, d, t, cos, st)
+                ray = st == 1
+                occ = np.ones((n, m_), bool)
+                if stage == 1:
+                    uniform = (n_ray >= 2) & ((n_free == 0) | (n_free == n_ray))
+                    guess = ray & uniform[:, None]
+                    occ[guess] = np.broadcast_to((n_free == 0)[:, None], occ.shape)[guess]
+                    ray &= ~uniform[:, None]
+                ri, ki = np.nonzero(ray)
+                occ[ri, ki] = self._occluded(o[ri, ki], d[ri, ki], t[ri, ki], es)
+                if stage == 0:
+                    n_ray += ray.sum(axis=1)
+                    n_free += (ray & ~occ).sum(axis=1)
+                counted = st > 0
+                free += np.where(counted & ~occ, cos, 0.0).sum(axis=1)
+                cnt += counted.sum(axis=1)
+            out[s0:s0 + n] = np.where(cnt > 0, free / np.maximum(cnt, 1), 0.0)
         # cosine per sample (a sphere across the horizon lights the receiver partly), distance
         # to the centre (the sphere's field; distances to its surface points overstate it)
-        return np.where(cnt > 0, free / np.maximum(cnt, 1), 0.0) / (4 * math.pi * np.maximum(dc, 1e-12) ** 2)
+        return out / (4 * math.pi * np.maximum(dc, 1e-12) ** 2)
 
     def _occluded(self, o: np.ndarray, d: np.ndarray, tfar: np.ndarray, es: Any = None) -> np.ndarray:
         """Occlusion of the segments ``o + t d``, ``t < tfar`` (two threads: Embree releases the GIL)."""
