@@ -497,9 +497,10 @@ class Room:
         return out
 
     def _solve(self, Ed_patch: np.ndarray, rho_patch: np.ndarray, known: np.ndarray | None = None,
-               B_known: np.ndarray | None = None, iters: int = 40) -> np.ndarray:
-        """Patch radiance (P, 3) of ``B = rho / pi (E_d + pi F B)``, measured patches held fixed."""
-        F = self.form_factors()
+               B_known: np.ndarray | None = None, iters: int = 40, F: np.ndarray | None = None) -> np.ndarray:
+        """Patch radiance (P, 3) of ``B = rho / pi (E_d + pi F B)``, measured patches held fixed
+        (``F``: the room's form factors unless given)."""
+        F = self.form_factors() if F is None else F
         B = rho_patch / math.pi * Ed_patch
         if known is not None and B_known is not None:
             B[known] = B_known[known]
@@ -950,14 +951,7 @@ class Room:
             occ = self._occluded(pc[rows[ri]] + self.eps * pn[rows[ri]], wd[ri, ci], d[ri, ci] - 2 * self.eps, es)
             F[rows[ri], ci] = np.where(occ, 0.0, ff)
         F /= np.maximum(F.sum(axis=1, dtype=np.float64), 1.0).astype(np.float32)[:, None]
-        rho_p = self.patch_reflectance[kidx]
-        B = rho_p / math.pi * Ed_patch
-        for _ in range(60):
-            nb = rho_p / math.pi * (Ed_patch + math.pi * _mv(F, B))
-            done = float(np.abs(nb - B).max()) <= 1e-5 * max(float(np.abs(nb).max()), 1e-300)
-            B = nb
-            if done:
-                break
+        B = self._solve(Ed_patch, self.patch_reflectance[kidx], iters=60, F=F)
         E = Ed_pix + math.pi * _mv(F, B)[slot[patch]]
         out = np.zeros((H, W, 3), np.float32)
         out[cover] = rho / math.pi * E
