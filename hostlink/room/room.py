@@ -14,7 +14,11 @@ What it does (the paper's steps; the choices it leaves open, and ours):
 
 - **Item buffer**: ``room.obj`` split into patches (triangles no longer than ``patch_size``,
   default the room's diagonal / 16) and rasterised from the camera: per pixel the 3D point,
-  the patch, its normal (towards the camera) and its group.
+  the patch, its normal (towards the camera) and its group. A pixel whose footprint crosses an
+  edge (another group, a fold, a depth step) is the camera's box-filtered mean of several
+  surfaces: it gets ``SUBPIXEL`` x ``SUBPIXEL`` camera rays, its reflectance is solved against
+  the mean of their shading and it is rendered as that mean. A patch no pixel sees faces the
+  side from which more of the seen patches are visible (``room.obj`` windings are arbitrary).
 - **Direct light**: each spherical light as ``light_samples`` points on the cap facing the
   receiver, each a point light of 1 / n of the sphere's intensity ``rgb / (4 pi)`` with its own
   Embree shadow ray (the paper's adaptive rays to an area light, fixed count here).
@@ -285,6 +289,90 @@ def _raster_cv(cam: CameraCV, v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray,
     return tri, bary
 
 
+SUBPIXEL = 3           # s x s samples over a pixel whose footprint crosses an edge
+
+
+@dataclass(frozen=True)
+class _Footprints:
+    """The camera's pixels that straddle an edge (two groups, a fold, a neighbour off the pixel's
+    plane, the border of the geometry): ``SUBPIXEL`` x ``SUBPIXEL`` samples over each such pixel's footprint
+    (a camera's box filter: what it records there is the mean of what lands on it, not the
+    light at the pixel's centre). ``pix`` indexes the covered pixels, one run of ``k`` entries
+    per edge pixel; ``patch`` is -1 where a sample misses the geometry (it counts as black)."""
+
+    edge: np.ndarray         # (e,) covered-pixel indices
+    pix: np.ndarray          # (e k,)
+    X: np.ndarray            # (m, 3) the samples that hit, ``hit`` of the e k
+    N: np.ndarray
+    patch: np.ndarray        # (m,) patch per sample that hit
+    hit: np.ndarray          # (e k,) bool
+    k: int
+    n: int                   # covered pixels
+
+    def pixels(self, centre: np.ndarray, sub: np.ndarray) -> np.ndarray:
+        """Per covered pixel: ``centre`` (n, ...) with the edge pixels replaced by the mean of
+        their samples' ``sub`` (m, ...)."""
+        if not len(self.edge):
+            return centre
+        out = centre.copy()
+        full = np.zeros((len(self.pix), *sub.shape[1:]), sub.dtype)
+        full[self.hit] = sub
+        out[self.edge] = full.reshape((len(self.edge), self.k, *sub.shape[1:])).mean(axis=1)
+        return out
+
+    def gather(self, Q: np.ndarray, centre_patch: np.ndarray) -> np.ndarray:
+        """A per-patch quantity ``Q`` (P, ...) at each covered pixel, over its footprint."""
+        return self.pixels(Q[centre_patch], Q[self.patch])
+
+
+def _footprints(cam: CameraCV, cover: np.ndarray, X: np.ndarray, N: np.ndarray, group: np.ndarray,
+                es: Any, faces: np.ndarray, pn: np.ndarray, s: int = SUBPIXEL) -> _Footprints:
+    """Find the edge pixels of a view (covered pixels ``cover``, their points, normals, groups)
+    and cast ``s`` x ``s`` camera rays over each one into the Embree scene ``es`` (whose
+    primitive ``i`` is patch ``faces[i]``; ``pn`` the patches' normals)."""
+    H, W = cover.shape
+    idx = np.full((H, W), -1)
+    idx[cover] = np.arange(len(X))
+    z = np.zeros((H, W))
+    z[cover] = (X @ cam.R.T + cam.t)[:, 2]
+    ximg = np.zeros((H, W, 3))
+    ximg[cover] = X
+    nimg = np.zeros((H, W, 3))
+    nimg[cover] = N
+    gimg = np.full((H, W), -1)
+    gimg[cover] = group
+    edge = np.zeros((H, W), bool)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = (slice(max(0, -dy), H - max(0, dy)), slice(max(0, -dx), W - max(0, dx)))
+        b = (slice(max(0, dy), H - max(0, -dy)), slice(max(0, dx), W - max(0, -dx)))
+        d = (gimg[a] != gimg[b]) | (np.einsum("ijk,ijk->ij", nimg[a], nimg[b]) < 0.99) | \
+            (np.abs(np.einsum("ijk,ijk->ij", nimg[a], ximg[b] - ximg[a])) > 0.01 * np.maximum(z[a], z[b]))   # off the plane
+        edge[a] |= d
+        edge[b] |= d
+    edge &= cover
+    ei = idx[edge]
+    yy, xx = np.nonzero(edge)
+    off = (np.arange(s) + 0.5) / s - 0.5
+    ox, oy = (g.ravel() for g in np.meshgrid(off, off))
+    px = (xx[:, None] + ox[None]).ravel()
+    py = (yy[:, None] + oy[None]).ravel()
+    d_cam = np.linalg.solve(cam.K, np.stack([px, py, np.ones_like(px)]))
+    d = (cam.R.T @ d_cam).T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(cam.center, d.shape)
+    if len(d):
+        res = es.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32), output=1)
+        prim, t = np.asarray(res["primID"]), np.asarray(res["tfar"], np.float64)
+    else:
+        prim, t = np.zeros(0, np.int64), np.zeros(0)
+    hit = prim >= 0
+    patch = faces[prim[hit]]
+    Xs = cam.center + t[hit, None] * d[hit]
+    Ns = pn[patch]
+    Ns = np.where((np.einsum("ij,ij->i", Ns, cam.center - Xs) < 0)[:, None], -Ns, Ns)
+    return _Footprints(ei, np.repeat(ei, s * s), Xs, Ns, patch, hit, s * s, len(X))
+
+
 class Room:
     """A photographed room: :meth:`recover` its reflectance, then :meth:`render` it under other
     lights. ``directory`` holds room.obj, camera.json and captures/ (see the module notes)."""
@@ -323,6 +411,7 @@ class Room:
         self.group = self.fgroup[self.patch]
         # patch normals face the camera side where the camera sees them; elsewhere the room's inside
         self._orient_patches()
+        self.fp = _footprints(self.cam, self.cover, self.X, self.N, self.group, self._es, np.arange(len(self.f)), self.pn)
         self.captures = []
         cap = d / "captures"
         files = sorted(cap.glob("*.exr")) if cap.is_dir() else []
@@ -331,7 +420,7 @@ class Room:
             for L in lights:
                 self._check_light(L, p.with_suffix(".json"))
             self.captures.append((p.stem, p, lights))
-        self._geo: dict[tuple[tuple[float, float, float], float], tuple[np.ndarray, np.ndarray]] = {}
+        self._geo: dict[tuple[tuple[float, float, float], float], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self._F: np.ndarray | None = None
         self._pairs: tuple[np.ndarray, ...] | None = None   # (i, j) with F[i, j] > 0
         self._F_rows: np.ndarray | None = None
@@ -352,11 +441,30 @@ class Room:
         flip_seen = np.zeros(len(self.f), bool)
         np.logical_or.at(flip_seen, self.patch, np.einsum("ij,ij->i", self.pn[self.patch], self.N) < 0)
         self.pn[seen & flip_seen] *= -1
+        # a patch the camera does not see faces the side from which more of the seen patches are
+        # in view (a block's top and far sides face out, not into the block); a patch that sees
+        # none from either side faces the room's centroid
+        unseen = np.flatnonzero(~seen)
+        if not len(unseen):
+            return
+        rng = np.random.default_rng(0)
+        seen_idx = np.flatnonzero(seen)
+        S = seen_idx if len(seen_idx) <= 128 else rng.choice(seen_idx, 128, replace=False)
+        w = self.pc[S][None] - self.pc[unseen][:, None]                 # (u, s, 3)
+        dist = np.linalg.norm(w, axis=2)
+        wd = w / np.maximum(dist, 1e-300)[..., None]
+        cu = np.einsum("usk,uk->us", wd, self.pn[unseen])
+        facing = np.einsum("usk,sk->us", wd, self.pn[S]) < 0          # the seen patch's front faces it
+        votes = np.zeros((len(unseen), 2))
+        for side, sign in enumerate((1.0, -1.0)):
+            ui, si = np.nonzero((sign * cu > 1e-3) & facing)
+            o = self.pc[unseen[ui]] + sign * self.eps * self.pn[unseen[ui]]
+            free = ~self._occluded(o, wd[ui, si], dist[ui, si] - 2 * self.eps)
+            votes[:, side] = np.bincount(ui[free], minlength=len(unseen))
         centroid = self.v.mean(axis=0)
-        unseen = ~seen
         inward = np.einsum("ij,ij->i", self.pn[unseen], centroid - self.pc[unseen]) < 0
-        idx = np.flatnonzero(unseen)[inward]
-        self.pn[idx] *= -1
+        flip = np.where(votes.sum(axis=1) > 0, votes[:, 1] > votes[:, 0], inward)
+        self.pn[unseen[flip]] *= -1
 
     def _check_light(self, L: Light, where: Path) -> None:
         c = np.asarray(L.position)
@@ -368,11 +476,18 @@ class Room:
                              param="lights")
 
     def _geometry(self, L: Light) -> tuple[np.ndarray, np.ndarray]:
-        """Irradiance per watt of a light: (pixels,), (patches,), cached."""
+        """Irradiance per watt of a light: (pixels,) over each pixel's footprint, (patches,), cached."""
+        g = self._geometry_parts(L)
+        return g[0], g[1]
+
+    def _geometry_parts(self, L: Light) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(pixels, patches, pixel centres, edge pixels' samples) irradiance per watt, cached."""
         key = (L.position, L.radius)          # the power does not change the geometry
         g = self._geo.get(key)
         if g is None:
-            g = (self._irradiance(L, self.X, self.N), self._irradiance(L, self.pc, self.pn))
+            gc = self._irradiance(L, self.X, self.N)
+            gs = self._irradiance(L, self.fp.X, self.fp.N)
+            g = (self.fp.pixels(gc, gs), self._irradiance(L, self.pc, self.pn), gc, gs)
             self._geo[key] = g
         return g
 
@@ -569,7 +684,7 @@ class Room:
                 known = cu > 0
                 Bm[known] /= cu[known, None]
                 Bp = self._solve(Ed_patch, rho_patch, known, Bm)
-                Ei = math.pi * _mv(self.form_factors(), Bp)[self.patch] if indirect else np.zeros_like(Ed_pix)
+                Ei = math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch) if indirect else np.zeros_like(Ed_pix)
                 den = Ed_pix + Ei
                 with np.errstate(divide="ignore", invalid="ignore"):
                     rk = np.where(den > 1e-12, math.pi * B / den, 0.0)
@@ -705,7 +820,7 @@ class Room:
             if u is None:
                 gp, gq = self._geometry(geo)
                 Bp = self._solve(np.repeat(gq[:, None], 3, axis=1), self.patch_reflectance)
-                u = self._unit[geo] = gp[:, None] + math.pi * _mv(self.form_factors(), Bp)[self.patch]
+                u = self._unit[geo] = gp[:, None] + math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch)
             acc += u * np.asarray(L.rgb)
         return self._image(self.reflectance / math.pi * acc)
 
@@ -760,11 +875,14 @@ class Room:
         Ed_c = np.zeros((len(cc), 3))
         Ed_o = np.zeros((len(Xo), 3))
         for L in lights:
-            gp, gq = self._geometry(L)
-            gp, gq = gp.copy(), gq.copy()
+            _, gq, gp, gs = self._geometry_parts(L)
+            gp, gq, gs = gp.copy(), gq.copy(), gs.copy()
             lc, reach = np.asarray(L.position), r_o + L.radius
             sp = np.flatnonzero(_near_segment(self.X, lc, c_o, reach))
             gp[sp] = self._irradiance(L, self.X[sp], self.N[sp], es)
+            ss = np.flatnonzero(_near_segment(self.fp.X, lc, c_o, reach))
+            gs[ss] = self._irradiance(L, self.fp.X[ss], self.fp.N[ss], es)
+            gp = self.fp.pixels(gp, gs)
             sq = np.flatnonzero(_near_segment(self.pc, lc, c_o, reach))
             gq[sq] = self._irradiance(L, self.pc[sq], self.pn[sq], es)
             rgb = np.asarray(L.rgb)
@@ -839,7 +957,7 @@ class Room:
             if done:
                 break
         self._last_B = (tuple(lights), Br)
-        E_pix = Ed_pix + math.pi * (room_light(Br) + _mv(Frc, Bc))[self.patch]
+        E_pix = Ed_pix + math.pi * self.fp.gather(room_light(Br) + _mv(Frc, Bc), self.patch)
         img = self._image(self.reflectance / math.pi * E_pix)
         # the object's pixels: their own normals against their cluster's view of the room
         E_o = np.empty((len(No), 3))
@@ -871,8 +989,6 @@ class Room:
         c_b = (gone.min(axis=0) + gone.max(axis=0)) / 2
         r_b = float(np.linalg.norm(gone - c_b, axis=1).max())
         es = build_embree([(self.v, self.f[keep])])
-        slot = np.full(len(self.f), -1)
-        slot[kidx] = np.arange(len(kidx))
         # the camera's new view: pixels that show the same patch as before keep their reflectance
         tri, bary = _raster_cv(self.cam, self.v, self.f[keep])
         cover = tri >= 0
@@ -919,14 +1035,16 @@ class Room:
                 fill[left] = self.patch_reflectance[patch[rows]][left]
                 rho[rows] = fill
         # direct light: the cached terms, re-traced inside the shafts to the removed faces
+        fp = _footprints(self.cam, cover, X, N, self.fgroup[patch], es, kidx, self.pn)
         Ed_pix = np.zeros((len(patch), 3))
         Ed_patch = np.zeros((len(kidx), 3))
         for L in lights:
-            gp, gq = self._geometry(L)
-            g_pix = np.where(same, gp[np.maximum(was, 0)], 0.0)
+            _, gq, gc, _ = self._geometry_parts(L)
+            g_pix = np.where(same, gc[np.maximum(was, 0)], 0.0)
             lc, reach = np.asarray(L.position), r_b + L.radius
             redo = np.flatnonzero(~same | _near_segment(X, lc, c_b, reach))
             g_pix[redo] = self._irradiance(L, X[redo], N[redo], es)
+            g_pix = fp.pixels(g_pix, self._irradiance(L, fp.X, fp.N, es))   # the new view's edges
             g_q = gq[kidx].copy()
             sq = np.flatnonzero(_near_segment(self.pc[kidx], lc, c_b, reach))
             g_q[sq] = self._irradiance(L, self.pc[kidx[sq]], self.pn[kidx[sq]], es)
@@ -952,7 +1070,9 @@ class Room:
             F[rows[ri], ci] = np.where(occ, 0.0, ff)
         F /= np.maximum(F.sum(axis=1, dtype=np.float64), 1.0).astype(np.float32)[:, None]
         B = self._solve(Ed_patch, self.patch_reflectance[kidx], iters=60, F=F)
-        E = Ed_pix + math.pi * _mv(F, B)[slot[patch]]
+        Q = np.zeros((len(self.f), 3))
+        Q[kidx] = _mv(F, B)
+        E = Ed_pix + math.pi * fp.gather(Q, patch)
         out = np.zeros((H, W, 3), np.float32)
         out[cover] = rho / math.pi * E
         self.render_cover = cover
