@@ -63,6 +63,35 @@ def build_room(d: Path, width: int, height: int) -> dict[str, str]:
     return mats
 
 
+def perturb_room(d: Path, out: Path, *, sigma: float = 0.004, shift: float = 0.01, seed: int = 0) -> None:
+    """A copy of ``d``'s room.obj in ``out`` as a photogrammetric model would have it: every
+    vertex moved by N(0, ``sigma``) per axis (the same for coincident vertices, so corners stay
+    closed) and each block shifted sideways by ``shift`` (world units, m). camera.json copied."""
+    rng = np.random.default_rng(seed)
+    moved: dict[tuple[float, ...], np.ndarray] = {}
+    lines, cur = [], ""
+    for line in (d / "room.obj").read_text().splitlines():
+        p = line.split()
+        if p and p[0] == "o":
+            cur = p[1]
+            off = np.zeros(3)
+            if "block" in cur:
+                a = rng.uniform(0, 2 * math.pi)
+                off = shift * np.array([math.cos(a), 0.0, math.sin(a)])
+        if p and p[0] == "v":
+            v = np.array([float(x) for x in p[1:4]])
+            key = tuple(np.round(v, 5))
+            if key not in moved:
+                moved[key] = rng.normal(0.0, sigma, 3)
+            jit = moved[key] * (np.array([1.0, 0.0, 1.0]) if v[1] == 0.0 else 1.0)   # the floor stays on the floor
+            v = v + jit + off
+            line = f"v {v[0]:.6f} {v[1]:.6f} {v[2]:.6f}"
+        lines.append(line)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "room.obj").write_text("\n".join(lines) + "\n")
+    (out / "camera.json").write_text((d / "camera.json").read_text())
+
+
 def _captures(d: Path, mats: dict[str, str]) -> None:
     from device.core.imageio import write_exr
     from hostlink.room.room import Light, Room

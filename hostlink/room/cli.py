@@ -29,7 +29,7 @@ def _recover(a: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     room = _room(a.dir)
-    img = room.recover(filters=not a.no_filters)
+    img = room.recover(filters=not a.no_filters, indirect=a.indirect)
     write_exr(a.dir / "reflectance.exr", img, {"lightprobe": "room reflectance"})
     conf = room.confidence_image()
     write_exr(a.dir / "confidence.exr", conf[..., None].repeat(3, axis=2), {"lightprobe": "room confidence"})
@@ -72,7 +72,11 @@ def main(argv: list[str]) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("recover", help="recover reflectance.exr and confidence.exr from the captures")
     r.add_argument("dir", type=Path, help="room folder: room.obj, camera.json, captures/NAME.exr + NAME.json")
-    r.add_argument("--no-filters", action="store_true", help="plain confidence-weighted merge (no outlier test or smoothing)")
+    r.add_argument("--no-filters", action="store_true",
+                   help="plain confidence-weighted merge (no confidence filter, outlier test, smoothing or refill)")
+    r.add_argument("--indirect", choices=("radiosity", "ambient", "none"), default="radiosity",
+                   help="indirect light: a radiosity solve over the patches (default), one ambient estimate "
+                        "from each capture's mean colour, or none")
     r.add_argument("--quiet", action="store_true")
     e = sub.add_parser("render", help="render the room under the lights of EDITS.json")
     e.add_argument("dir", type=Path)

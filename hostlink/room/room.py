@@ -25,13 +25,23 @@ What it does (the paper's steps; the choices it leaves open, and ours):
 - **Indirect light: a radiosity solve over the patches** with the captures' own measurements:
   a patch seen by the camera has its measured radiance; the others ``rho / pi (E_direct +
   E_indirect)`` with their group's current reflectance; patch-to-patch form factors with one
-  visibility ray between centres. (The paper's first, ambient-only estimate is not offered.)
+  visibility ray between centres. Or (``indirect="ambient"``) the paper's first estimate, with
+  one change: the paper takes the image's mean colour times a user-given average reflectance;
+  here the room around a pixel is taken to be as bright as the capture's mean colour ``C`` (in a
+  closed room the light arriving after a bounce is the room's own radiance, which ``C``
+  measures), so ``E_indirect = pi C`` times the share of the pixel's hemisphere the geometry
+  covers (its form factors' sum: an open side lets light out). No number to guess.
 - **Reflectance** per capture ``rho_k = pi B_k / (E_direct + E_indirect)`` (eq. 2), merged with
   confidences ``w_k`` = the direct share of the capture's irradiance (eq. 3: lit pixels count,
-  shadowed ones barely), after the outlier test around the per-pixel median of the captures
-  (``|rho_k - median| > 0.3 median`` rejected; the paper's 0.75 / 0.3 thresholds, the 0.3 kept)
-  and a 3 x 3 smoothing within each group. Pixels where a light sphere itself is in view are left
-  out of that capture. Three passes: each refreshes the groups' reflectance the unseen patches use.
+  shadowed ones barely). The filters (``filters=True``): the paper's confidence filter
+  ``K = min(K, kappa)``, ``kappa`` the 5 x 5 mean of the 5 x 5 minimum (confidence falls
+  towards a shadow's or a surface's edge, where an approximate model is wrong first); the outlier
+  test around the per-pixel median of the captures (``|rho_k - median| > 0.3 median`` rejected;
+  the paper's 0.75 / 0.3 thresholds, the 0.3 kept); a 3 x 3 smoothing within each group; then
+  (ours) a pixel under ``DOUBT`` of its surface's median confidence is blended, by confidence,
+  with a normalised convolution of the surface's confident pixels around it. Pixels where a
+  light sphere itself is in view are left out of that capture. Three passes: each refreshes the
+  groups' reflectance the unseen patches use.
 - **Relighting**: any set of spherical lights (power changes, added or removed lights): the
   same direct term, the radiosity solve with the recovered reflectance for every patch, per
   pixel ``B = rho / pi (E_direct + E_indirect)``. A light's geometry term is cached, so a power
@@ -49,7 +59,7 @@ What it does (the paper's steps; the choices it leaves open, and ours):
   a normalised convolution (a smooth fill; the paper uses texture synthesis), and their shadows
   and blocked form factors are redone inside the shaft to their bounding sphere.
 
-Not built: lights found from probes' peaks, the ambient-only indirect estimate.
+Not built: lights found from probes' peaks (the captures' json gives the lamps), texture synthesis.
 """
 
 from __future__ import annotations
@@ -68,6 +78,8 @@ from device.core.sphere import luminance
 
 __all__ = ["CameraCV", "Light", "Room", "VirtualObject", "load_camera", "load_edits", "load_lights"]
 
+INDIRECT = ("radiosity", "ambient", "none")   # Room.recover's indirect terms
+DOUBT = 0.5            # a pixel under this fraction of its surface's median confidence is blended with its surroundings
 OUTLIER = 0.3          # a capture's reflectance further than this fraction from the median is rejected
 
 
@@ -289,6 +301,30 @@ def _raster_cv(cam: CameraCV, v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray,
     return tri, bary
 
 
+def _normalised_fill(shape: tuple[int, int], src: np.ndarray, value: np.ndarray, weight: np.ndarray,
+                     todo: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Values (len(todo), 3) at flat pixel indices ``todo`` of an image ``shape``, from ``value``
+    at ``src`` with confidences ``weight``: a normalised convolution (Knutsson, Westin 1993) at
+    each pixel's finest Gaussian scale that reaches it; ``fallback`` where none does."""
+    import cv2
+
+    wimg = np.zeros(shape, np.float32)
+    wimg.flat[src] = weight
+    acc = np.zeros((*shape, 3), np.float32)
+    acc.reshape(-1, 3)[src] = value * weight[:, None]
+    fill = np.array(fallback, np.float64)
+    left = np.ones(len(todo), bool)
+    for sigma in (2.0, 4.0, 8.0, 16.0, 32.0, 64.0):
+        wb = cv2.GaussianBlur(wimg, (0, 0), sigma).ravel()[todo]
+        ab = cv2.GaussianBlur(acc, (0, 0), sigma).reshape(-1, 3)[todo]
+        ok = left & (wb > 1e-3)
+        fill[ok] = ab[ok] / wb[ok, None]
+        left &= ~ok
+        if not left.any():
+            break
+    return fill
+
+
 SUBPIXEL = 3           # s x s samples over a pixel whose footprint crosses an edge
 
 
@@ -385,6 +421,7 @@ class Room:
         if not d.is_dir():
             raise InputError(f"{d}: not a folder", param="room")
         mesh, fg, names = load_obj_groups(d / "room.obj")
+        self.directory = d
         self.cam = load_camera(d / "camera.json")
         self.group_names = names
         diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
@@ -646,14 +683,25 @@ class Room:
             hit |= (d2 < reach ** 2) & (tc > 0) & (tc < dist)
         return hit
 
-    def recover(self, *, filters: bool = True, passes: int = 3, indirect: bool = True) -> np.ndarray:
+    def recover(self, *, filters: bool = True, passes: int = 3, indirect: str = "radiosity") -> np.ndarray:
         """Reflectance (H, W, 3) (0 where the camera sees no geometry); sets ``reflectance``
-        (pixels, 3), ``confidence`` (pixels,) and ``patch_reflectance``. ``indirect=False``
-        treats all light as direct (a diagnostic: right only for a room with black walls)."""
+        (pixels, 3), ``confidence`` (pixels,) and ``patch_reflectance``.
+
+        ``indirect``: ``"radiosity"`` (the solve over the patches, measured ones held), or an
+        ambient estimate in the spirit of the paper's first one, ``"ambient"``: the room around
+        a pixel taken to be as bright as the capture's mean colour ``C`` over the room, so its
+        indirect irradiance is ``pi C`` times the share of its hemisphere the room's geometry
+        covers (its form factors' sum; one pass, nothing refined), or ``"none"`` (all light
+        taken as direct: right only for a room with black walls)."""
         from device.core.imageio import read_hdr_image
 
+        if indirect not in INDIRECT:
+            raise InputError(f"indirect must be one of {', '.join(INDIRECT)}, not {indirect!r}", param="indirect")
         if not self.captures:
             raise InputError("captures/: no NAME.exr with NAME.json", param="captures")
+        if indirect != "radiosity":
+            passes = 1
+        cover_ff = self.fp.gather(self.form_factors().sum(axis=1).astype(np.float64), self.patch) if indirect == "ambient" else np.zeros(0)
         H, W = self.cam.height, self.cam.width
         shots = []
         for name, p, lights in self.captures:
@@ -683,8 +731,13 @@ class Room:
                 cu = np.bincount(self.patch[usable], minlength=P)
                 known = cu > 0
                 Bm[known] /= cu[known, None]
-                Bp = self._solve(Ed_patch, rho_patch, known, Bm)
-                Ei = math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch) if indirect else np.zeros_like(Ed_pix)
+                if indirect == "radiosity":
+                    Bp = self._solve(Ed_patch, rho_patch, known, Bm)
+                    Ei = math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch)
+                elif indirect == "ambient":
+                    Ei = math.pi * np.outer(cover_ff, B[usable].mean(axis=0))
+                else:
+                    Ei = np.zeros_like(Ed_pix)
                 den = Ed_pix + Ei
                 with np.errstate(divide="ignore", invalid="ignore"):
                     rk = np.where(den > 1e-12, math.pi * B / den, 0.0)
@@ -694,6 +747,8 @@ class Room:
                 wts.append(w)
             R = np.stack(est)                # (k, n, 3)
             Wt = np.stack(wts)               # (k, n)
+            if filters:
+                Wt = np.stack([self._filter_confidence(w) for w in Wt])
             if filters and len(R) >= 3:
                 lr = np.where(Wt > 0, luminance(R), np.nan)
                 n_ok = (Wt > 0).sum(axis=0)
@@ -708,6 +763,7 @@ class Room:
             conf = tot / len(R)
             if filters:
                 rho = self._smooth(rho, conf)
+                rho = self._refill_doubtful(rho, conf)
             rho_group = self._group_reflectance(rho, conf, rho_group)
             self._set_patch_reflectance(rho, conf, rho_group)
         self.reflectance, self.confidence = rho, conf
@@ -753,6 +809,47 @@ class Room:
         if self.confidence is not None:
             img[self.cover] = self.confidence
         return img
+
+    def _filter_confidence(self, w: np.ndarray) -> np.ndarray:
+        """The paper's confidence filter: ``K = min(K, kappa)``, ``kappa`` the 5 x 5 mean of the
+        5 x 5 minimum of ``K`` (over the pixels that see the room), so confidence falls off
+        towards a shadow's or a surface's edge, where an approximate model is most likely wrong."""
+        from numpy.lib.stride_tricks import sliding_window_view
+
+        H, W = self.cam.height, self.cam.width
+        img = np.full((H + 4, W + 4), np.inf)
+        img[2:-2, 2:-2][self.cover] = w
+        kmin = sliding_window_view(img, (5, 5)).min(axis=(2, 3))          # (H, W)
+        val = np.where(np.isfinite(kmin) & self.cover, kmin, 0.0)
+        cnt = np.zeros((H + 4, W + 4))
+        acc = np.zeros((H + 4, W + 4))
+        cnt[2:-2, 2:-2] = self.cover
+        acc[2:-2, 2:-2] = val
+        s_acc = sliding_window_view(acc, (5, 5)).sum(axis=(2, 3))
+        s_cnt = sliding_window_view(cnt, (5, 5)).sum(axis=(2, 3))
+        kappa = (s_acc / np.maximum(s_cnt, 1.0))[self.cover]
+        return np.asarray(np.minimum(w, kappa))
+
+    def _refill_doubtful(self, rho: np.ndarray, conf: np.ndarray) -> np.ndarray:
+        """Pixels whose confidence is under ``DOUBT`` of their surface's median (edges of an
+        approximate model, what no capture lit) take the surface's confident reflectance around
+        them (a normalised convolution), blended by confidence: ``(c rho + c_ref fill) / (c + c_ref)``."""
+        H, W = self.cam.height, self.cam.width
+        flat = np.flatnonzero(self.cover)
+        out = rho.copy()
+        for g in np.unique(self.group):
+            sel = self.group == g
+            cref = DOUBT * float(np.median(conf[sel]))
+            if cref <= 0:
+                continue
+            low = sel & (conf < cref)
+            src = sel & (conf >= cref)
+            if not low.any() or not src.any():
+                continue
+            fill = _normalised_fill((H, W), flat[src], rho[src], conf[src], flat[low], rho[low])
+            c = conf[low, None]
+            out[low] = (c * rho[low] + cref * fill) / (c + cref)
+        return out
 
     def _smooth(self, rho: np.ndarray, conf: np.ndarray) -> np.ndarray:
         """3 x 3 confidence-weighted smoothing within each group (the paper's last filter)."""
@@ -977,8 +1074,6 @@ class Room:
         removed faces' bounding sphere as the shaft's end: a lamp's light where its segment to a
         pixel or patch passes the sphere (their shadows go), the form factors of links passing
         it (those the removed faces blocked come back, exact polygon form factors and a ray)."""
-        import cv2
-
         from hostlink.relight.precompute import build_embree
 
         assert self.reflectance is not None
@@ -1015,25 +1110,8 @@ class Room:
                 if not src.any():      # a surface never seen at all: its group's reflectance
                     rho[rows] = self.patch_reflectance[patch[rows]]
                     continue
-                # normalised convolution (Knutsson, Westin 1993) of the surface's own confident
-                # reflectance: at each hole pixel the finest Gaussian scale that reaches it
-                wimg = np.zeros((H, W), np.float32)
-                wimg.flat[flat[src]] = conf[src]
-                acc = np.zeros((H, W, 3), np.float32)
-                acc.reshape(-1, 3)[flat[src]] = rho[src] * conf[src, None]
-                todo = flat[rows]
-                fill = np.zeros((len(todo), 3))
-                left = np.ones(len(todo), bool)
-                for sigma in (2.0, 4.0, 8.0, 16.0, 32.0, 64.0):
-                    wb = cv2.GaussianBlur(wimg, (0, 0), sigma).ravel()[todo]
-                    ab = cv2.GaussianBlur(acc, (0, 0), sigma).reshape(-1, 3)[todo]
-                    ok = left & (wb > 1e-3)
-                    fill[ok] = ab[ok] / wb[ok, None]
-                    left &= ~ok
-                    if not left.any():
-                        break
-                fill[left] = self.patch_reflectance[patch[rows]][left]
-                rho[rows] = fill
+                rho[rows] = _normalised_fill((H, W), flat[src], rho[src], conf[src], flat[rows],
+                                             self.patch_reflectance[patch[rows]])
         # direct light: the cached terms, re-traced inside the shafts to the removed faces
         fp = _footprints(self.cam, cover, X, N, self.fgroup[patch], es, kidx, self.pn)
         Ed_pix = np.zeros((len(patch), 3))
