@@ -39,6 +39,19 @@ def _lamp(p: list[float], rgb: list[float]) -> dict:
 
 def _mitsuba(d: Path, mats: dict[str, str], lights: list[dict], seed: int, spp: int = SPP,
              objects: list | None = None, skip: tuple[str, ...] = ()) -> np.ndarray:
+    """Mitsuba's photograph of the room from the room's camera."""
+    import mitsuba as mi
+
+    mi.set_variant("scalar_rgb")
+    sensor = {"type": "perspective", "fov": FOV, "fov_axis": "y",
+              "to_world": mi.ScalarTransform4f().look_at(origin=EYE.tolist(), target=TARGET.tolist(), up=[0, 1, 0]),
+              "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+              "sampler": {"type": "independent", "sample_count": spp}}
+    return _mitsuba_scene(d, mats, lights, sensor, seed, objects, skip)
+
+
+def _mitsuba_scene(d: Path, mats: dict[str, str], lights: list[dict], sensor: dict, seed: int,
+                   objects: list | None = None, skip: tuple[str, ...] = ()) -> np.ndarray:
     import mitsuba as mi
 
     from hostlink.relight.scene import load_obj_groups
@@ -66,13 +79,62 @@ def _mitsuba(d: Path, mats: dict[str, str], lights: list[dict], seed: int, spp: 
         shapes[f"lamp{i}"] = {"type": "sphere", "center": L["position"], "radius": r,
                               "emitter": {"type": "area", "radiance": {"type": "rgb",
                                                                        "value": [c / (4 * math.pi ** 2 * r * r) for c in L["rgb"]]}}}
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "path", "max_depth": 8},
-        "sensor": {"type": "perspective", "fov": FOV, "fov_axis": "y",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=EYE.tolist(), target=TARGET.tolist(), up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": spp}}, **shapes})
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 8}, "sensor": sensor, **shapes})
     return np.array(mi.render(scene, seed=seed), np.float32)
+
+
+_FACES = (([1, 0, 0], [0, 1, 0]), ([-1, 0, 0], [0, 1, 0]), ([0, 1, 0], [0, 0, 1]), ([0, -1, 0], [0, 0, -1]),
+          ([0, 0, 1], [0, 1, 0]), ([0, 0, -1], [0, 1, 0]))
+
+
+def _probe_map(d: Path, mats: dict[str, str], lights: list[dict], position: list[float], rotation: np.ndarray,
+               seed: int, rows: int = 128, face: int = 96, spp: int = 16) -> np.ndarray:
+    """Mitsuba's view of the room from a probe at ``position`` (``rotation``: probe to world):
+    six 90-degree faces splatted into a (rows, 2 rows) equirect in the probe frame (CONVENTIONS.md),
+    each texel's radiance x solid angle kept, so the map's integrals are the render's."""
+    import mitsuba as mi
+
+    mi.set_variant("scalar_rgb")
+    H, Wd = rows, 2 * rows
+    acc = np.zeros((H * Wd, 3))
+    u = (np.arange(face) + 0.5) / face * 2 - 1
+    uu, vv = np.meshgrid(u, u)
+    om = ((2.0 / face) ** 2 / (1 + uu ** 2 + vv ** 2) ** 1.5).ravel()      # a cube texel's solid angle
+    for fi, (fwd, up) in enumerate(_FACES):
+        sensor = {"type": "perspective", "fov": 90, "fov_axis": "x",
+                  "to_world": mi.ScalarTransform4f().look_at(origin=list(position), target=list(np.add(position, fwd)), up=up),
+                  "film": {"type": "hdrfilm", "width": face, "height": face, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                  "sampler": {"type": "independent", "sample_count": spp}}
+        img = _mitsuba_scene(d, mats, lights, sensor, seed * 6 + fi)
+        sens = mi.load_dict(sensor)
+        dirs = np.array([np.array(sens.sample_ray(0.0, 0.5, mi.ScalarPoint2f((k % face + 0.5) / face, (k // face + 0.5) / face),
+                                                  mi.ScalarPoint2f(0.5, 0.5))[0].d) for k in range(face * face)])
+        dp = dirs @ np.asarray(rotation, np.float64)          # probe frame: R^T d
+        th = np.arccos(np.clip(dp[:, 1], -1, 1))
+        ph = np.mod(np.arctan2(dp[:, 0], -dp[:, 2]), 2 * math.pi)
+        r = np.minimum((th / math.pi * H).astype(int), H - 1)
+        c = np.minimum((ph / (2 * math.pi) * Wd).astype(int), Wd - 1)
+        np.add.at(acc, r * Wd + c, img.reshape(-1, 3) * om[:, None])
+    row_om = (2 * math.pi / Wd) * (np.cos(np.pi * np.arange(H) / H) - np.cos(np.pi * np.arange(1, H + 1) / H))
+    return (acc.reshape(H, Wd, 3) / row_om[:, None, None]).astype(np.float32)
+
+
+# three probes on the box's walls, turned on their mounts (the first's +y is world +z)
+PROBES = (([0.04, 0.30, 0.04], np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])),
+          ([0.06, 0.40, 0.52], np.array([[math.cos(0.6), 0, math.sin(0.6)], [0, 1, 0], [-math.sin(0.6), 0, math.cos(0.6)]])),
+          ([0.50, 0.45, 0.52], np.eye(3)))
+
+
+def _probe_docs(d: Path, mats: dict[str, str], lights: list[dict], seed: int, probes=PROBES) -> list[dict]:  # type: ignore[no-untyped-def]
+    """What each probe serves at ``GET /api/v1/sg`` (the fit of its map, its pose beside it)."""
+    from device.core.sgfit import fit_sg
+
+    docs = []
+    for k, (pos, R) in enumerate(probes):
+        doc = fit_sg(_probe_map(d, mats, lights, pos, R, 1000 + 10 * seed + k), probe=f"p{k}").to_json()
+        doc["pose"] = {"rotation": R.tolist(), "position": pos}
+        docs.append(doc)
+    return docs
 
 
 @pytest.fixture(scope="module")
@@ -324,3 +386,79 @@ def test_loading_refuses_bad_cameras_and_lights(tmp_path: Path) -> None:
     (tmp_path / "l.json").write_text("{")
     with pytest.raises(InputError, match=r"l\.json:1: invalid JSON"):
         load_lights(tmp_path / "l.json")
+
+
+@pytest.fixture(scope="module")
+def probe_lamps(room_dir):  # type: ignore[no-untyped-def]
+    """For each capture: the three probes' SG bodies of the room under its lamp, and the lamps
+    ``hostlink.room.probes`` finds in them."""
+    from hostlink.room.probes import lights_from_probes
+
+    d, mats = room_dir
+    out = []
+    for k, pos in enumerate(CAPTURES):
+        docs = _probe_docs(d, mats, [_lamp(pos, [2.0, 2.0, 2.0])], k)
+        out.append((docs, lights_from_probes(d, docs)))
+    return out
+
+
+def test_lamps_found_by_the_probes(room_dir, probe_lamps) -> None:  # type: ignore[no-untyped-def]
+    from hostlink.room.probes import lights_from_probes
+
+    for pos, (_docs, found) in zip(CAPTURES, probe_lamps, strict=True):
+        assert len(found) == 1, [f.light for f in found]       # one lamp, no bright wall patch
+        f = found[0]
+        err = float(np.linalg.norm(np.subtract(f.light.position, pos)))
+        print(f"lamp at {pos}: {f.method} from probes {f.probes}, {1000 * err:.1f} mm off, power "
+              f"{f.light.rgb[1]:.3f} (truth 2), radius {f.light.radius:.4f} (0.02)")
+        assert f.method == "triangulated"
+        assert len(f.probes) >= 2
+        assert err <= 0.005
+        np.testing.assert_allclose(f.light.rgb, 2.0, rtol=0.06)
+        assert 0.01 <= f.light.radius <= 0.04
+    # one probe, a lamp 2.5 cm in front of the back wall: placed on the wall its ray meets
+    d, mats = room_dir
+    wall = [0.30, 0.30, 0.5592 - 0.025]
+    doc = _probe_docs(d, mats, [_lamp(wall, [2.0, 2.0, 2.0])], 9, PROBES[:1])
+    found = lights_from_probes(d, doc)
+    assert [f.method for f in found] == ["surface"]
+    assert float(np.linalg.norm(np.subtract(found[0].light.position, wall))) <= 0.03
+    bad = dict(doc[0])
+    del bad["pose"]
+    with pytest.raises(InputError, match="pose"):
+        lights_from_probes(d, [bad])
+
+
+def test_recovery_with_the_lamps_the_probes_found(room_dir, recovered, probe_lamps, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """The issue's "lights for free": the captures' lamps not measured by hand but found by the
+    probes (the CLI for the first, the API for the rest); the reflectance as good as with the truth."""
+    from hostlink.room.room import Room
+
+    d = tmp_path / "room"
+    (d / "captures").mkdir(parents=True)
+    for name in ("room.obj", "camera.json"):
+        (d / name).write_text((room_dir[0] / name).read_text())
+    for k, (docs, found) in enumerate(probe_lamps):
+        (d / "captures" / f"c{k}.exr").symlink_to(room_dir[0] / "captures" / f"c{k}.exr")
+        if k == 0:
+            for j, doc in enumerate(docs):
+                (tmp_path / f"sg{j}.json").write_text(json.dumps(doc))
+            r = subprocess.run([sys.executable, "-m", "device.cli", "room", "lights", str(d),
+                                *(a for j in range(len(docs)) for a in ("--sg", str(tmp_path / f"sg{j}.json"))),
+                                "--out", str(d / "captures" / "c0.json")], capture_output=True, text=True, timeout=300,
+                               cwd=Path(__file__).parents[1])
+            assert r.returncode == 0, r.stderr
+            assert "triangulated" in r.stderr
+        else:
+            (d / "captures" / f"c{k}.json").write_text(json.dumps({"lights": [
+                {"position": list(f.light.position), "radius": f.light.radius, "rgb": list(f.light.rgb)} for f in found]}))
+    _, _, truth, m = recovered
+    refl = Room(d).recover()
+    err = _lum_err(refl[m].astype(np.float64), truth[m])
+    print(f"lamps from the probes: albedo median {np.median(err):.4f}, p95 {np.percentile(err, 95):.4f}")
+    assert np.median(err) <= 0.03
+    r = subprocess.run([sys.executable, "-m", "device.cli", "room", "lights", str(d), "--sg", str(tmp_path / "nope.json"),
+                        "--out", str(tmp_path / "x.json")], capture_output=True, text=True, timeout=300,
+                       cwd=Path(__file__).parents[1])
+    assert r.returncode == 2
+    assert "nope.json" in r.stderr

@@ -159,6 +159,8 @@ async def test_service_serves_sg_and_streams_it_on_request(tmp_path: Path) -> No
         assert body["kind"] == "sg"
         assert body["version"] == 1
         assert body["lobes"]
+        assert np.asarray(body["pose"]["rotation"]).shape == (3, 3)      # as beside a light set
+        assert len(body["pose"]["position"]) == 3
         lobe = body["lobes"][0]
         assert set(lobe) == {"axis", "sharpness", "amplitude", "kind"}
         assert lobe["kind"] in ("peak", "residual")

@@ -41,6 +41,8 @@ def sg_body(st: ServiceState) -> bytes | None:
                 unit=str(getattr(r, "unit", "relative")))
     body = sg.to_json()
     body["stale"] = st.runner.stale
+    if getattr(r.lights, "pose", None):      # as beside a light set: hosts place the lobes in the room
+        body["pose"] = r.lights.pose
     return json.dumps(body, separators=(",", ":")).encode()
 
 

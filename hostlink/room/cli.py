@@ -1,11 +1,14 @@
-"""``lightprobe room recover DIR`` and ``lightprobe room render DIR --edit EDITS.json --out IMAGE``.
+"""``lightprobe room recover DIR``, ``lightprobe room render DIR --edit EDITS.json --out IMAGE`` and
+``lightprobe room lights DIR --sg PROBE... --out captures/NAME.json``.
 
 ``recover`` writes ``DIR/reflectance.exr`` and ``DIR/confidence.exr`` (atomically) and prints what
 it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
 captures' format: ``{"lights": [{"position", "radius", "rgb"}]}``, the whole edited set: change
 a power, add or drop a light; ``"objects"``: virtual meshes to insert; ``"remove"``: room.obj
 groups to take out; see :func:`hostlink.room.room.load_edits`) and writes the room under them (``.exr`` linear, ``.png``
-tone-mapped). Bad input exits 2 naming the file.
+tone-mapped). ``lights`` places the lamps the probes see (their ``GET /api/v1/sg`` bodies, files
+or URLs, with their poses) in ``room.obj`` and writes them in the captures' format
+(:mod:`hostlink.room.probes`). Bad input exits 2 naming the file.
 """
 
 from __future__ import annotations
@@ -65,6 +68,27 @@ def _render(a: argparse.Namespace) -> int:
     return 0
 
 
+def _lights(a: argparse.Namespace) -> int:
+    import json
+
+    from device.core.fsutil import atomic_write
+    from hostlink.room.probes import lights_from_probes
+
+    found = lights_from_probes(a.dir, a.sg)
+    doc = {"lights": [{"position": list(f.light.position), "radius": f.light.radius, "rgb": list(f.light.rgb)}
+                      for f in found]}
+    out = Path(a.out)
+    atomic_write(out, (json.dumps(doc, indent=1) + "\n").encode())
+    if not a.quiet:
+        for f in found:
+            x, y, z = f.light.position
+            print(f"room: lamp at ({x:.3f}, {y:.3f}, {z:.3f}) m, radius {f.light.radius:.3f} m, power "
+                  f"{', '.join(f'{c:.4g}' for c in f.light.rgb)}: {f.method} from probes {f.probes}"
+                  + (f", rays {1000 * f.gap:.1f} mm apart" if f.method == "triangulated" else ""), file=sys.stderr)
+        print(f"room: wrote {out} ({len(found)} lamps from {len(a.sg)} probes)", file=sys.stderr)
+    return 0
+
+
 def main(argv: list[str]) -> int:
     from device.core.command import run_command
 
@@ -83,8 +107,14 @@ def main(argv: list[str]) -> int:
     e.add_argument("--edit", type=Path, required=True, help="EDITS.json: {\"lights\": [...], \"objects\": [...], \"remove\": [...]}: lights, virtual meshes, groups removed")
     e.add_argument("--out", required=True, help="IMAGE.exr (linear) or IMAGE.png (tone-mapped)")
     e.add_argument("--quiet", action="store_true")
+    lt = sub.add_parser("lights", help="the lamps the probes see, placed in the room: a captures/NAME.json")
+    lt.add_argument("dir", type=Path, help="room folder (its room.obj)")
+    lt.add_argument("--sg", action="append", required=True,
+                    help="a probe's GET /api/v1/sg body with its pose (a file), or the probe's URL; once per probe")
+    lt.add_argument("--out", required=True, help="the lights JSON to write (e.g. DIR/captures/NAME.json)")
+    lt.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
-    return run_command(_recover if a.cmd == "recover" else _render, a)
+    return run_command({"recover": _recover, "render": _render, "lights": _lights}[a.cmd], a)
 
 
 if __name__ == "__main__":

@@ -59,7 +59,8 @@ What it does (the paper's steps; the choices it leaves open, and ours):
   a normalised convolution (a smooth fill; the paper uses texture synthesis), and their shadows
   and blocked form factors are redone inside the shaft to their bounding sphere.
 
-Not built: lights found from probes' peaks (the captures' json gives the lamps), texture synthesis.
+Lamps can come from the probes instead of the captures' json being measured by hand:
+:mod:`hostlink.room.probes` (``lightprobe room lights``). Not built: texture synthesis.
 """
 
 from __future__ import annotations
