@@ -6,10 +6,11 @@ positions: the captures. Recovery is scored per pixel against the true albedo of
 pixel shows; edits against Mitsuba's render of the edited room, over the room's surfaces (pixels
 showing a light sphere left out; with ``spot.obj`` inserted, its pixels and a pixel around them
 too, its own shading scored apart; with the short block removed, what it hid scored apart too).
-Measured 2026-12-04 (BENCHMARKS.md, issue 18): albedo median 1.43% (p95 11.6%), edits 2.9-4.8%
-relative RMSE (the 1024-spp truth carries ~2.7% noise of its own: against an 8192-spp render the
-first edit scores 2.9%, not 3.7%); the bounds are the issue's
-targets (3%, 5%), the revealed and the object's own pixels (6.8%, 12.6%) with a margin.
+Measured 2026-12-05 (BENCHMARKS.md, issue 18): albedo median 1.26% (p95 8.9%), edits 2.8-4.2%
+relative RMSE on the exact room, 6.0-9.3% on the +-2% one (the 1024-spp truth carries ~2.7% noise
+of its own: against an 8192-spp render the first edit scored 2.9%, not 3.7%); the bounds are the
+issue's targets (3%, 5%, 10%; 13% for the added lamp on the approximate room, see below), the
+revealed and the object's own pixels with a margin.
 """
 
 from __future__ import annotations
@@ -30,7 +31,9 @@ pytestmark = pytest.mark.slow
 
 W, H, SPP = 96, 72, 256
 CAPTURES = LAMPS[:5]
-PERTURB = (0.002, 0.005)     # approximate geometry: vertices moved 2 mm rms, the blocks 5 mm (~1% of the room)
+# approximate geometry, the issue's +-2%: the blocks 1 cm off (1.8% of the 0.556 m room), every
+# vertex 4 mm rms (a pixel is ~8 mm on the back wall)
+PERTURB = (0.004, 0.01)
 
 
 def _lamp(p: list[float], rgb: list[float]) -> dict:
@@ -301,11 +304,28 @@ def test_edits_against_mitsuba(room_dir, recovered, perturbed, shared_data: Path
     y, yr = luminance(img[m]), luminance(truth[m])
     err = float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
     print(f"{tag}: relative RMSE {err:.4f}")
-    # the issue's targets, 5% and 10%; not met for the added lamp on the approximate room: ~30
-    # pixels the model puts on the tall block's face the new lamp lights are dark in the real room
-    # (70% of the squared error): the blocks' 5 mm error at their silhouettes and shadow edges
+    # the issue's targets, 5% and 10%. The added lamp on the approximate room is held to 13%: this
+    # perturbation measures 9.3% with the snapping (16.7% without), but three other seeds of the
+    # same +-2% measure 14.3-16.2% (12.1-18.5% without): the new lamp's shadow edges fall where
+    # the model's blocks are, 1 cm off (BENCHMARKS.md, issue 18)
     bound = 0.05 if geometry == "exact" else 0.13 if edit == "a light added" else 0.10
     assert err <= bound
+
+
+def test_snapping_where_the_model_is_off(room_dir, recovered, perturbed) -> None:  # type: ignore[no-untyped-def]
+    """The approximate room's misplaced silhouettes are shaded by the geometry the captures
+    agree with; the exact room's pixels keep their own nearly everywhere."""
+    exact, approx = recovered[0], perturbed[0]
+    n = int(exact.cover.sum())
+    print(f"snapped: exact {exact.snapped} / {n}, approximate {approx.snapped} / {n}")
+    assert exact.snapped <= 0.02 * n
+    assert approx.snapped >= 2 * max(exact.snapped, 10)
+    src = approx.source_image()
+    yy, xx = np.nonzero(approx.cover)
+    moved = approx.src != np.arange(len(approx.src))
+    assert np.array_equal(src[approx.cover][:, 0][moved], yy[approx.src[moved]])
+    assert np.abs(yy[approx.src] - yy).max() <= 2
+    assert np.abs(xx[approx.src] - xx).max() <= 2
 
 
 def test_cli_recover_render_and_bad_input(room_dir, shared_data: Path, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
@@ -327,6 +347,7 @@ def test_cli_recover_render_and_bad_input(room_dir, shared_data: Path, tmp_path:
     assert r.returncode == 0, r.stderr
     assert (d / "reflectance.exr").is_file()
     assert (d / "confidence.exr").is_file()
+    assert (d / "shading_source.exr").is_file()
     (d / "edit.json").write_text(json.dumps({"lights": [_lamp([0.3, 0.4, 0.25], [3.0, 3.0, 3.0])]}))
     r = run("render", str(d), "--edit", str(d / "edit.json"), "--out", str(tmp_path / "edit.png"))
     assert r.returncode == 0, r.stderr

@@ -1,8 +1,9 @@
 """``lightprobe room recover DIR``, ``lightprobe room render DIR --edit EDITS.json --out IMAGE`` and
 ``lightprobe room lights DIR --sg PROBE... --out captures/NAME.json``.
 
-``recover`` writes ``DIR/reflectance.exr`` and ``DIR/confidence.exr`` (atomically) and prints what
-it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
+``recover`` writes ``DIR/reflectance.exr``, ``DIR/confidence.exr`` and ``DIR/shading_source.exr``
+(which pixel's geometry shades each pixel, :meth:`hostlink.room.room.Room._snap`) atomically and
+prints what it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
 captures' format: ``{"lights": [{"position", "radius", "rgb"}]}``, the whole edited set: change
 a power, add or drop a light; ``"objects"``: virtual meshes to insert; ``"remove"``: room.obj
 groups to take out; see :func:`hostlink.room.room.load_edits`) and writes the room under them (``.exr`` linear, ``.png``
@@ -36,9 +37,13 @@ def _recover(a: argparse.Namespace) -> int:
     write_exr(a.dir / "reflectance.exr", img, {"lightprobe": "room reflectance"})
     conf = room.confidence_image()
     write_exr(a.dir / "confidence.exr", conf[..., None].repeat(3, axis=2), {"lightprobe": "room confidence"})
+    write_exr(a.dir / "shading_source.exr", room.source_image(),
+              {"lightprobe": "room shading source (row, column of the pixel whose geometry shades each pixel)"})
     if not a.quiet:
         print(f"room: {len(room.captures)} captures, {int(room.cover.sum())} pixels, {len(room.f)} patches, "
-              f"{time.perf_counter() - t0:.1f} s; wrote {a.dir / 'reflectance.exr'}, {a.dir / 'confidence.exr'}",
+              f"{room.snapped} pixels shaded by a neighbour's geometry (the model is off there), "
+              f"{time.perf_counter() - t0:.1f} s; wrote {a.dir / 'reflectance.exr'}, {a.dir / 'confidence.exr'}, "
+              f"{a.dir / 'shading_source.exr'}",
               file=sys.stderr)
     return 0
 
@@ -57,7 +62,9 @@ def _render(a: argparse.Namespace) -> int:
     room = _room(a.dir)
     refl = a.dir / "reflectance.exr"
     if refl.is_file() and (a.dir / "confidence.exr").is_file():
-        room.use_reflectance(read_hdr_image(refl), read_hdr_image(a.dir / "confidence.exr")[..., 0])
+        src = a.dir / "shading_source.exr"
+        room.use_reflectance(read_hdr_image(refl), read_hdr_image(a.dir / "confidence.exr")[..., 0],
+                             read_hdr_image(src) if src.is_file() else None)
     else:
         room.recover()
     img = room.render(lights, a.edit, objects, remove)

@@ -31,6 +31,14 @@ What it does (the paper's steps; the choices it leaves open, and ours):
   closed room the light arriving after a bounce is the room's own radiance, which ``C``
   measures), so ``E_indirect = pi C`` times the share of the pixel's hemisphere the geometry
   covers (its form factors' sum: an open side lets light out). No number to guess.
+- **Where the model is off** (ours; the paper's filters only lower such pixels' confidence): a
+  pixel's captures under lamps at several positions say which surface it shows, since its
+  radiance must be one reflectance times the modelled irradiance in every capture. After the
+  first pass, a pixel whose own modelled irradiance misfits its captures (over ``SNAP_MIN``,
+  relative, squared) while a pixel's within ``SNAP_RADIUS`` fits at least ``1 / SNAP_GAIN``
+  times better is shaded with that pixel's geometry, in the recovery and in every edit
+  (:meth:`Room._snap`): a silhouette the model puts a pixel off (the block where the photographs
+  show the wall) then takes a new lamp's light as the wall does.
 - **Reflectance** per capture ``rho_k = pi B_k / (E_direct + E_indirect)`` (eq. 2), merged with
   confidences ``w_k`` = the direct share of the capture's irradiance (eq. 3: lit pixels count,
   shadowed ones barely). The filters (``filters=True``): the paper's confidence filter
@@ -81,6 +89,9 @@ __all__ = ["CameraCV", "Light", "Room", "VirtualObject", "load_camera", "load_ed
 
 INDIRECT = ("radiosity", "ambient", "none")   # Room.recover's indirect terms
 DOUBT = 0.5            # a pixel under this fraction of its surface's median confidence is blended with its surroundings
+SNAP_RADIUS = 2        # a pixel may take the geometry of a pixel this many pixels away ...
+SNAP_GAIN = 0.5        # ... whose shading explains its captures this much better (misfit ratio) ...
+SNAP_MIN = 0.02        # ... when its own misfit is over this (relative, squared: 14% rms)
 OUTLIER = 0.3          # a capture's reflectance further than this fraction from the median is rejected
 
 
@@ -450,6 +461,8 @@ class Room:
         # patch normals face the camera side where the camera sees them; elsewhere the room's inside
         self._orient_patches()
         self.fp = _footprints(self.cam, self.cover, self.X, self.N, self.group, self._es, np.arange(len(self.f)), self.pn)
+        self.src = np.arange(len(self.X))       # the pixel whose geometry shades each pixel (:meth:`_snap`)
+        self.snapped = 0                         # pixels shaded by another pixel's geometry
         self.captures = []
         cap = d / "captures"
         files = sorted(cap.glob("*.exr")) if cap.is_dir() else []
@@ -684,7 +697,8 @@ class Room:
             hit |= (d2 < reach ** 2) & (tc > 0) & (tc < dist)
         return hit
 
-    def recover(self, *, filters: bool = True, passes: int = 3, indirect: str = "radiosity") -> np.ndarray:
+    def recover(self, *, filters: bool = True, passes: int = 3, indirect: str = "radiosity",
+                snap: bool = True) -> np.ndarray:
         """Reflectance (H, W, 3) (0 where the camera sees no geometry); sets ``reflectance``
         (pixels, 3), ``confidence`` (pixels,) and ``patch_reflectance``.
 
@@ -693,7 +707,9 @@ class Room:
         a pixel taken to be as bright as the capture's mean colour ``C`` over the room, so its
         indirect irradiance is ``pi C`` times the share of its hemisphere the room's geometry
         covers (its form factors' sum; one pass, nothing refined), or ``"none"`` (all light
-        taken as direct: right only for a room with black walls)."""
+        taken as direct: right only for a room with black walls). ``snap``: after the first
+        pass, a pixel whose captures a neighbour's geometry explains far better is shaded with
+        that geometry from then on (:meth:`_snap`, ``src``)."""
         from device.core.imageio import read_hdr_image
 
         if indirect not in INDIRECT:
@@ -720,11 +736,13 @@ class Room:
         seen = cnt > 0
         rho = np.zeros((len(self.X), 3))
         conf = np.zeros(len(self.X))
-        for _ in range(passes):
+        self.src = np.arange(len(self.X))
+        self.snapped = 0
+        for pas in range(passes):
             rho_patch = rho_group[self.fgroup]
             if self.patch_reflectance is not None:
                 rho_patch = np.where(seen[:, None], self.patch_reflectance, rho_patch)
-            est, wts = [], []
+            est, wts, shade = [], [], []
             for _name, B, Ed_pix, Ed_patch, usable in shots:
                 Bm = np.zeros((P, 3))
                 for ch in range(3):
@@ -739,7 +757,12 @@ class Room:
                     Ei = math.pi * np.outer(cover_ff, B[usable].mean(axis=0))
                 else:
                     Ei = np.zeros_like(Ed_pix)
-                den = Ed_pix + Ei
+                shade.append(Ed_pix + Ei)
+            if pas == 0 and snap:
+                self.src = self._snap([sh[1] for sh in shots], shade, [sh[4] for sh in shots])
+            for (_name, B, Ed_pix, _ed_patch, usable), den in zip(shots, shade, strict=True):
+                den = den[self.src]
+                Ed_pix = Ed_pix[self.src]
                 with np.errstate(divide="ignore", invalid="ignore"):
                     rk = np.where(den > 1e-12, math.pi * B / den, 0.0)
                 w = luminance(Ed_pix) / np.maximum(luminance(den), 1e-300)
@@ -770,14 +793,77 @@ class Room:
         self.reflectance, self.confidence = rho, conf
         return self._image(rho)
 
-    def use_reflectance(self, reflectance: np.ndarray, confidence: np.ndarray) -> None:
+    def _snap(self, B: list[np.ndarray], S: list[np.ndarray], U: list[np.ndarray]) -> np.ndarray:
+        """Which pixel's geometry shades each pixel: itself, unless the model is off there.
+
+        ``B``, ``S``, ``U``: per capture the measured radiance, the modelled irradiance (direct +
+        indirect) and the usable pixels. A pixel's captures under lamps at several positions say
+        which surface it shows: the measured radiance must be one reflectance times the
+        modelled irradiance in every capture. Its misfit with the best reflectance (relative,
+        squared) is taken for its own modelled irradiance and for each pixel's within
+        ``SNAP_RADIUS``; where its own exceeds ``SNAP_MIN`` and a neighbour's is under
+        ``SNAP_GAIN`` of it, the neighbour's geometry shades it, in the recovery and in every
+        edit. That fixes a silhouette or an edge the approximate model puts a pixel or two off
+        (the model shows the block where the photographs show the wall behind it)."""
+        H, W = self.cam.height, self.cam.width
+        n = len(self.X)
+        idx = np.full((H, W), -1)
+        idx[self.cover] = np.arange(n)
+        yy, xx = np.nonzero(self.cover)
+        Bl = np.stack([luminance(b) for b in B])
+        Sl = np.stack([luminance(x) for x in S])
+        Uw = np.stack(U).astype(np.float64)
+        b2 = (Uw * Bl * Bl).sum(axis=0)
+        best_e = np.full(n, np.inf)
+        best_j = np.arange(n)
+        own_e = np.full(n, np.inf)
+        for dy in range(-SNAP_RADIUS, SNAP_RADIUS + 1):
+            for dx in range(-SNAP_RADIUS, SNAP_RADIUS + 1):
+                y2, x2 = yy + dy, xx + dx
+                ok = (y2 >= 0) & (y2 < H) & (x2 >= 0) & (x2 < W)
+                j = np.full(n, -1)
+                j[ok] = idx[y2[ok], x2[ok]]
+                ok = j >= 0
+                Sj = Sl[:, np.maximum(j, 0)]
+                sbs = (Uw * Bl * Sj).sum(axis=0)
+                sss = (Uw * Sj * Sj).sum(axis=0)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    e = (b2 - sbs * sbs / sss) / b2        # misfit of the best reflectance, relative
+                e = np.where(ok & (sss > 0) & (b2 > 0), e, np.inf)
+                if dy == 0 and dx == 0:
+                    own_e = e
+                better = e < best_e
+                best_e[better] = e[better]
+                best_j[better] = j[better]
+        switch = (own_e > SNAP_MIN) & (best_e < SNAP_GAIN * own_e)
+        self.snapped = int(switch.sum())
+        return np.where(switch, best_j, np.arange(n))
+
+    def use_reflectance(self, reflectance: np.ndarray, confidence: np.ndarray,
+                        source: np.ndarray | None = None) -> None:
         """Take a recovered reflectance (H, W, 3) and confidence (H, W) (``reflectance.exr``,
-        ``confidence.exr`` of :meth:`recover`) instead of recovering again."""
+        ``confidence.exr`` of :meth:`recover`) instead of recovering again, and the pixel whose
+        geometry shades each pixel (``source``: (H, W, >= 2) row and column, :meth:`source_image`,
+        ``shading_source.exr``; default: each its own)."""
         H, W = self.cam.height, self.cam.width
         r, c = np.asarray(reflectance, np.float64), np.asarray(confidence, np.float64)
         if r.shape[:2] != (H, W) or c.shape[:2] != (H, W):
             raise InputError(f"reflectance and confidence must be {W} x {H} (camera.json), got "
                              f"{r.shape[1]} x {r.shape[0]}", param="reflectance")
+        self.src = np.arange(len(self.X))
+        if source is not None:
+            sr = np.asarray(source, np.float64)
+            if sr.shape[:2] != (H, W) or sr.ndim != 3 or sr.shape[2] < 2:
+                raise InputError(f"shading source must be {W} x {H} x 2 (camera.json), got {sr.shape}",
+                                 param="shading_source")
+            idx = np.full((H, W), -1)
+            idx[self.cover] = np.arange(len(self.X))
+            rc = np.rint(np.nan_to_num(sr[self.cover][:, :2], nan=-1.0)).astype(np.int64)
+            ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
+            j = np.full(len(self.X), -1)
+            j[ok] = idx[rc[ok, 0], rc[ok, 1]]
+            self.src = np.where(j >= 0, j, self.src)
+        self.snapped = int((self.src != np.arange(len(self.X))).sum())
         rho = np.nan_to_num(r[self.cover][:, :3]).clip(0, None)
         conf = np.nan_to_num(c[self.cover] if c.ndim == 2 else c[self.cover][:, 0]).clip(0, None)
         rho_group = self._group_reflectance(rho, conf, np.full((len(self.group_names), 3), 0.5))
@@ -804,6 +890,14 @@ class Room:
         pr[ok] /= cw[ok, None]
         pr[~ok] = rho_group[self.fgroup[~ok]]
         self.patch_reflectance = pr
+
+    def source_image(self) -> np.ndarray:
+        """(H, W, 3) float32: row and column of the pixel whose geometry shades each pixel
+        (:meth:`_snap`), then 0; -1 where the camera sees no geometry."""
+        img = np.full((self.cam.height, self.cam.width, 3), -1.0, np.float32)
+        yy, xx = np.nonzero(self.cover)
+        img[self.cover] = np.stack([yy[self.src], xx[self.src], np.zeros(len(self.src))], axis=1)
+        return img
 
     def confidence_image(self) -> np.ndarray:
         img = np.zeros((self.cam.height, self.cam.width), np.float32)
@@ -920,7 +1014,7 @@ class Room:
                 Bp = self._solve(np.repeat(gq[:, None], 3, axis=1), self.patch_reflectance)
                 u = self._unit[geo] = gp[:, None] + math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch)
             acc += u * np.asarray(L.rgb)
-        return self._image(self.reflectance / math.pi * acc)
+        return self._image(self.reflectance / math.pi * acc[self.src])
 
     def _render_with(self, lights: list[Light], objects: list[VirtualObject]) -> np.ndarray:
         """:meth:`render` with virtual objects (Loscos et al. 1999, section 5: a virtual object
@@ -1055,7 +1149,7 @@ class Room:
             if done:
                 break
         self._last_B = (tuple(lights), Br)
-        E_pix = Ed_pix + math.pi * self.fp.gather(room_light(Br) + _mv(Frc, Bc), self.patch)
+        E_pix = (Ed_pix + math.pi * self.fp.gather(room_light(Br) + _mv(Frc, Bc), self.patch))[self.src]
         img = self._image(self.reflectance / math.pi * E_pix)
         # the object's pixels: their own normals against their cluster's view of the room
         E_o = np.empty((len(No), 3))
@@ -1152,6 +1246,13 @@ class Room:
         Q = np.zeros((len(self.f), 3))
         Q[kidx] = _mv(F, B)
         E = Ed_pix + math.pi * fp.gather(Q, patch)
+        # pixels that showed the same patch before keep the geometry that explained their captures
+        # (:meth:`_snap`) where that pixel is still shown as before
+        new_of_old = np.full(len(self.X), -1)
+        new_of_old[was[same]] = np.flatnonzero(same)
+        take = new_of_old[self.src[was[same]]]
+        rows = np.flatnonzero(same)[take >= 0]
+        E[rows] = E[take[take >= 0]]
         out = np.zeros((H, W, 3), np.float32)
         out[cover] = rho / math.pi * E
         self.render_cover = cover
