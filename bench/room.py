@@ -158,6 +158,15 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
         rows["object_moved"] = timeit(move, reps)
         rows["object_pixels"] = int(room.object_mask.sum()) if room.object_mask is not None else 0
         rows["block_removed"] = timeit(lambda: room.render(base, remove=["short_block"]), reps)
+        # the objects of a +-2% model moved to where the captures put them (Room.aligned), then recovered
+        d2 = d / "perturbed"
+        perturb_room(d, d2, sigma=0.004, shift=0.01)
+        (d2 / "captures").symlink_to(d / "captures")
+        t0, c0 = time.perf_counter(), time.process_time()
+        aligned = Room.aligned(d2)
+        rows["align_perturbed"] = {"s": round(time.perf_counter() - t0, 2), "cpu_s": round(time.process_time() - c0, 2),
+                                   "offsets_mm": {k: [round(1e3 * x, 1) for x in v] for k, v in aligned.offsets.items()},
+                                   "misfit_before_after": aligned.align_misfit}
     summary = {k: (v.get("median", v.get("ms", v.get("s"))) if isinstance(v, dict) else v) for k, v in rows.items()}
     result = {"summary": summary, "frames": rows}
     (out_dir / "room.json").write_text(json.dumps(result, indent=1))

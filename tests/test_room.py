@@ -7,10 +7,10 @@ pixel shows; edits against Mitsuba's render of the edited room, over the room's 
 showing a light sphere left out; with ``spot.obj`` inserted, its pixels and a pixel around them
 too, its own shading scored apart; with the short block removed, what it hid scored apart too).
 Measured 2026-12-05 (BENCHMARKS.md, issue 18): albedo median 1.26% (p95 8.9%), edits 2.8-4.2%
-relative RMSE on the exact room, 6.0-9.3% on the +-2% one (the 1024-spp truth carries ~2.7% noise
-of its own: against an 8192-spp render the first edit scored 2.9%, not 3.7%); the bounds are the
-issue's targets (3%, 5%, 10%; 13% for the added lamp on the approximate room, see below), the
-revealed and the object's own pixels with a margin.
+relative RMSE on the exact room, 5.6-7.6% on the +-2% one with its objects aligned (the 1024-spp
+truth carries ~2.7% noise of its own: against an 8192-spp render the first edit scored 2.9%, not
+3.7%); the bounds are the issue's targets (3%, 10%, 5%, 10%), the revealed and the object's own
+pixels with a margin.
 """
 
 from __future__ import annotations
@@ -185,6 +185,16 @@ def perturbed(room_dir, recovered, tmp_path_factory: pytest.TempPathFactory):  #
     return room, room.recover(), truth, m
 
 
+@pytest.fixture(scope="module")
+def aligned(perturbed):  # type: ignore[no-untyped-def]
+    """The approximate room with its objects moved where the captures put them (``Room.aligned``,
+    what ``lightprobe room recover --align`` does), recovered."""
+    from hostlink.room.room import Room
+
+    room = Room.aligned(perturbed[0].directory)
+    return room, room.recover(), perturbed[2], perturbed[3] & room.cover
+
+
 def _lum_err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     from device.core.sphere import luminance
 
@@ -222,7 +232,10 @@ def test_reflectance_with_the_ambient_estimate(room_dir, recovered) -> None:  # 
         Room(room_dir[0]).recover(indirect="ambiant")
 
 
-def test_filters_on_approximate_geometry(room_dir, perturbed) -> None:  # type: ignore[no-untyped-def]
+def test_filters_on_approximate_geometry(room_dir, perturbed, aligned) -> None:  # type: ignore[no-untyped-def]
+    """The paper's filters on the approximate model as it is (``recover`` without ``--align``).
+    Aligned, the same cut is 28-29% (BENCHMARKS.md): the short block's front face, 6 mm off in
+    depth, which no capture's misfit sees, holds most of the tail either way."""
     from hostlink.room.room import Room
 
     room, refl, truth, m = perturbed
@@ -234,6 +247,14 @@ def test_filters_on_approximate_geometry(room_dir, perturbed) -> None:  # type: 
           f"median {np.median(err_raw):.4f}, p95 {p95_raw:.4f}: p95 cut {1 - p95 / p95_raw:.1%}")
     assert p95 <= 0.7 * p95_raw            # the issue's target: the filters cut p95 by >= 30%
     assert np.median(err) <= 0.05
+    room_a, refl_a, _, m_a = aligned
+    err_a = _lum_err(refl_a[m_a].astype(np.float64), truth[m_a])
+    raw_a = Room(room_a.directory, offsets=room_a.offsets).recover(filters=False)
+    err_ra = _lum_err(raw_a[m_a].astype(np.float64), truth[m_a])
+    print(f"aligned: albedo median {np.median(err_a):.4f}, p95 {np.percentile(err_a, 95):.4f}; without filters "
+          f"median {np.median(err_ra):.4f}, p95 {np.percentile(err_ra, 95):.4f}")
+    assert np.median(err_a) <= 0.05
+    assert np.percentile(err_a, 95) < np.percentile(err_ra, 95)
 
 
 _TRUTH: dict[str, np.ndarray] = {}
@@ -252,13 +273,13 @@ def _spot_edit(shared: Path, d: Path) -> Path:
 @pytest.mark.parametrize("geometry", ["exact", "perturbed"])
 @pytest.mark.parametrize("edit", ["first light x2 with the second", "a light added", "spot.obj inserted",
                                   "short block removed"])
-def test_edits_against_mitsuba(room_dir, recovered, perturbed, shared_data: Path, edit: str,  # type: ignore[no-untyped-def]
+def test_edits_against_mitsuba(room_dir, recovered, aligned, shared_data: Path, edit: str,  # type: ignore[no-untyped-def]
                                geometry: str) -> None:
     from device.core.sphere import luminance
     from hostlink.room.room import Light, load_edits
 
     d, mats = room_dir
-    room = recovered[0] if geometry == "exact" else perturbed[0]
+    room = recovered[0] if geometry == "exact" else aligned[0]
     tag = f"{edit} ({geometry} geometry)"
     objects: list = []
     remove: tuple[str, ...] = ("short_block",) if edit.endswith("removed") else ()
@@ -304,12 +325,49 @@ def test_edits_against_mitsuba(room_dir, recovered, perturbed, shared_data: Path
     y, yr = luminance(img[m]), luminance(truth[m])
     err = float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
     print(f"{tag}: relative RMSE {err:.4f}")
-    # the issue's targets, 5% and 10%. The added lamp on the approximate room is held to 13%: this
-    # perturbation measures 9.3% with the snapping (16.7% without), but three other seeds of the
-    # same +-2% measure 14.3-16.2% (12.1-18.5% without): the new lamp's shadow edges fall where
-    # the model's blocks are, 1 cm off (BENCHMARKS.md, issue 18)
-    bound = 0.05 if geometry == "exact" else 0.13 if edit == "a light added" else 0.10
+    # the issue's targets, 5% and 10%. The added lamp is 6 cm from the short block's side: on the
+    # approximate room it needs the alignment (16.7% without it or the snapping; 7.6% with both
+    # here, 8.7-10.0% on three other seeds of the same +-2%: BENCHMARKS.md, issue 18)
+    bound = 0.05 if geometry == "exact" else 0.10
     assert err <= bound
+
+
+def _block_offsets(a: Path, b: Path) -> dict[str, np.ndarray]:
+    """Mean displacement of each block's vertices from room.obj in ``a`` to the one in ``b``."""
+    out: dict[str, list] = {}
+    for d in (a, b):
+        cur = ""
+        for line in (d / "room.obj").read_text().splitlines():
+            p = line.split()
+            if p and p[0] == "o":
+                cur = p[1]
+            if p and p[0] == "v" and "block" in cur:
+                out.setdefault(cur, []).append([float(x) for x in p[1:4]])
+    return {k: np.mean(np.reshape(v, (2, -1, 3))[1] - np.reshape(v, (2, -1, 3))[0], axis=0) for k, v in out.items()}
+
+
+def test_alignment_moves_the_objects_where_the_captures_put_them(room_dir, recovered, aligned) -> None:  # type: ignore[no-untyped-def]
+    """The exact room keeps its model (the gain is under the gate); the +-2% room's blocks come
+    back sideways (x, as this camera sees them) to within 3 mm of where they are, from 7-10 mm."""
+    from hostlink.room.room import Room, movable_groups
+
+    exact, approx = recovered[0], aligned[0]
+    assert movable_groups(exact.model_vertices, exact.model_faces, exact.model_groups, exact.group_names) == \
+        ["light", "short_block", "tall_block"]
+    assert Room(room_dir[0]).align() == {}
+    assert set(approx.offsets) <= {"light", "short_block", "tall_block"}
+    assert approx.align_misfit is not None
+    before, after = approx.align_misfit
+    assert after <= 0.95 * before
+    true = _block_offsets(room_dir[0], approx.directory)          # exact -> perturbed
+    for name, off in true.items():
+        got = np.asarray(approx.offsets.get(name, (0.0, 0.0, 0.0)))
+        print(f"{name}: model {1e3 * off[0]:+.1f} mm in x, moved {1e3 * got[0]:+.1f} mm")
+        assert abs(off[0]) >= 0.005
+        assert abs(off[0] + got[0]) <= 0.003
+        assert abs(got[1]) < 1e-12          # sideways only: the objects stay on the floor
+    with pytest.raises(InputError, match="no group 'sofa'"):
+        Room(room_dir[0], offsets={"sofa": (0.01, 0.0, 0.0)})
 
 
 def test_snapping_where_the_model_is_off(room_dir, recovered, perturbed) -> None:  # type: ignore[no-untyped-def]
@@ -348,10 +406,21 @@ def test_cli_recover_render_and_bad_input(room_dir, shared_data: Path, tmp_path:
     assert (d / "reflectance.exr").is_file()
     assert (d / "confidence.exr").is_file()
     assert (d / "shading_source.exr").is_file()
+    assert json.loads((d / "alignment.json").read_text())["offsets"] == {}
     (d / "edit.json").write_text(json.dumps({"lights": [_lamp([0.3, 0.4, 0.25], [3.0, 3.0, 3.0])]}))
     r = run("render", str(d), "--edit", str(d / "edit.json"), "--out", str(tmp_path / "edit.png"))
     assert r.returncode == 0, r.stderr
     assert cv2.imread(str(tmp_path / "edit.png")).shape == (H, W, 3)
+    (d / "alignment.json").write_text(json.dumps({"offsets": {"short_block": [0.01, 0.0]}}))
+    r = run("render", str(d), "--edit", str(d / "edit.json"), "--out", str(tmp_path / "edit.png"))
+    assert r.returncode == 2
+    assert "alignment.json: 'offsets' must map" in r.stderr
+    r = run("recover", str(d), "--align")          # the exact model: nothing worth moving
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((d / "alignment.json").read_text())
+    assert doc["offsets"] == {}
+    assert doc["misfit_before_after"][1] <= doc["misfit_before_after"][0]
+    assert "objects moved none" in r.stderr
     spot = json.loads(_spot_edit(shared_data, d).read_text())
     (d / "edit_spot.json").write_text(json.dumps(spot))
     r = run("render", str(d), "--edit", str(d / "edit_spot.json"), "--out", str(tmp_path / "spot.exr"))

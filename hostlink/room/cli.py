@@ -1,9 +1,10 @@
 """``lightprobe room recover DIR``, ``lightprobe room render DIR --edit EDITS.json --out IMAGE`` and
 ``lightprobe room lights DIR --sg PROBE... --out captures/NAME.json``.
 
-``recover`` writes ``DIR/reflectance.exr``, ``DIR/confidence.exr`` and ``DIR/shading_source.exr``
-(which pixel's geometry shades each pixel, :meth:`hostlink.room.room.Room._snap`) atomically and
-prints what it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
+``recover`` writes ``DIR/reflectance.exr``, ``DIR/confidence.exr``, ``DIR/shading_source.exr``
+(which pixel's geometry shades each pixel, :meth:`hostlink.room.room.Room._snap`) and
+``DIR/alignment.json`` (with ``--align``, the objects' offsets :meth:`hostlink.room.room.Room.align`
+found; ``{}`` without) atomically and prints what it used; ``render`` reads them (or recovers first), takes the lights of ``EDITS.json`` (the
 captures' format: ``{"lights": [{"position", "radius", "rgb"}]}``, the whole edited set: change
 a power, add or drop a light; ``"objects"``: virtual meshes to insert; ``"remove"``: room.obj
 groups to take out; see :func:`hostlink.room.room.load_edits`) and writes the room under them (``.exr`` linear, ``.png``
@@ -22,18 +23,48 @@ from pathlib import Path
 __all__ = ["main"]
 
 
-def _room(d: Path):  # type: ignore[no-untyped-def]
+def _room(d: Path, offsets: dict | None = None):  # type: ignore[no-untyped-def]
     from hostlink.room.room import Room
 
-    return Room(d)
+    return Room(d, offsets=offsets)
+
+
+def _read_alignment(d: Path) -> dict:
+    """The objects' offsets ``recover --align`` found (``DIR/alignment.json``), {} without one."""
+    import json
+
+    from device.core.errors import InputError
+
+    p = d / "alignment.json"
+    if not p.is_file():
+        return {}
+    try:
+        doc = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"{p}: not a readable JSON file ({e})", param=str(p)) from e
+    offsets = doc.get("offsets") if isinstance(doc, dict) else None
+    if not isinstance(offsets, dict) or not all(
+            isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) for x in v) for v in offsets.values()):
+        raise InputError(f"{p}: 'offsets' must map room.obj group names to [x, y, z]", param=str(p))
+    return {str(k): [float(x) for x in v] for k, v in offsets.items()}
 
 
 def _recover(a: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from device.core.fsutil import atomic_write
     from device.core.imageio import write_exr
+    from hostlink.room.room import Room
 
     t0 = time.perf_counter()
-    room = _room(a.dir)
+    room = Room.aligned(a.dir) if a.align else _room(a.dir)
     img = room.recover(filters=not a.no_filters, indirect=a.indirect)
+    # always written: a render must use the model the reflectance was recovered with
+    atomic_write(a.dir / "alignment.json", json.dumps(
+        {"version": 1, "offsets": {k: list(v) for k, v in room.offsets.items()},
+         "misfit_before_after": list(room.align_misfit) if room.align_misfit else None}, indent=1).encode())
     write_exr(a.dir / "reflectance.exr", img, {"lightprobe": "room reflectance"})
     conf = room.confidence_image()
     write_exr(a.dir / "confidence.exr", conf[..., None].repeat(3, axis=2), {"lightprobe": "room confidence"})
@@ -41,7 +72,9 @@ def _recover(a: argparse.Namespace) -> int:
               {"lightprobe": "room shading source (row, column of the pixel whose geometry shades each pixel)"})
     if not a.quiet:
         print(f"room: {len(room.captures)} captures, {int(room.cover.sum())} pixels, {len(room.f)} patches, "
-              f"{room.snapped} pixels shaded by a neighbour's geometry (the model is off there), "
+              + (f"objects moved {', '.join(f'{k} {1e3 * float(np.linalg.norm(v)):.1f} mm' for k, v in room.offsets.items()) or 'none'}"
+                 f" (misfit {room.align_misfit[0]:.4g} -> {room.align_misfit[1]:.4g}), " if room.align_misfit else "")
+              + f"{room.snapped} pixels shaded by a neighbour's geometry (the model is off there), "
               f"{time.perf_counter() - t0:.1f} s; wrote {a.dir / 'reflectance.exr'}, {a.dir / 'confidence.exr'}, "
               f"{a.dir / 'shading_source.exr'}",
               file=sys.stderr)
@@ -59,7 +92,7 @@ def _render(a: argparse.Namespace) -> int:
         raise InputError(f"{out}: --out must end in .png or .exr", param="--out")
     lights, objects, remove = load_edits(a.edit)
     t0 = time.perf_counter()
-    room = _room(a.dir)
+    room = _room(a.dir, _read_alignment(a.dir))
     refl = a.dir / "reflectance.exr"
     if refl.is_file() and (a.dir / "confidence.exr").is_file():
         src = a.dir / "shading_source.exr"
@@ -108,6 +141,9 @@ def main(argv: list[str]) -> int:
     r.add_argument("--indirect", choices=("radiosity", "ambient", "none"), default="radiosity",
                    help="indirect light: a radiosity solve over the patches (default), one ambient estimate "
                         "from each capture's mean colour, or none")
+    r.add_argument("--align", action="store_true",
+                   help="first move the room's objects sideways (up to 2%% of the room) to where the captures "
+                        "put them; written to alignment.json, which render uses")
     r.add_argument("--quiet", action="store_true")
     e = sub.add_parser("render", help="render the room under the lights of EDITS.json")
     e.add_argument("dir", type=Path)

@@ -39,6 +39,19 @@ What it does (the paper's steps; the choices it leaves open, and ours):
   times better is shaded with that pixel's geometry, in the recovery and in every edit
   (:meth:`Room._snap`): a silhouette the model puts a pixel off (the block where the photographs
   show the wall) then takes a new lamp's light as the wall does.
+- **Objects where the captures put them** (ours, opt-in: :meth:`Room.align`, ``Room.aligned``,
+  ``lightprobe room recover --align``): an approximate model's objects (groups smaller than the
+  room on every axis that own their vertices: :func:`movable_groups`) are moved sideways as the
+  camera sees them, at most ``ALIGN_BOUND`` of the room's size (the modelling error the paper
+  allows), by coordinate descent (steps ``ALIGN_STEPS`` of that bound) on the captures' misfit
+  (the sum over the model's pixels of each pixel's misfit, capped at ``SNAP_CAP``, on a camera at
+  most ``ALIGN_WIDTH`` pixels wide, with the indirect light of the model's own recovery held).
+  A step is kept when it lowers the misfit by ``ALIGN_STEP_GAIN`` of the model's, the whole
+  alignment only when it ends below ``ALIGN_GAIN`` of it, so a model that is right stays. Only
+  sideways: silhouettes pin an object across the view, while depth scales a surface's light
+  almost uniformly, which a pixel's reflectance absorbs (not observable from one viewpoint), and
+  objects stay on their floor. It matters most for a lamp added close to a surface: 6 cm from a
+  face placed 1 cm off, the lamp's light on it is off by a third.
 - **Reflectance** per capture ``rho_k = pi B_k / (E_direct + E_indirect)`` (eq. 2), merged with
   confidences ``w_k`` = the direct share of the capture's irradiance (eq. 3: lit pixels count,
   shadowed ones barely). The filters (``filters=True``): the paper's confidence filter
@@ -68,7 +81,8 @@ What it does (the paper's steps; the choices it leaves open, and ours):
   and blocked form factors are redone inside the shaft to their bounding sphere.
 
 Lamps can come from the probes instead of the captures' json being measured by hand:
-:mod:`hostlink.room.probes` (``lightprobe room lights``). Not built: texture synthesis.
+:mod:`hostlink.room.probes` (``lightprobe room lights``). Not built: texture synthesis; objects
+turned or moved in depth by the alignment.
 """
 
 from __future__ import annotations
@@ -85,13 +99,19 @@ import numpy as np
 from device.core.errors import InputError
 from device.core.sphere import luminance
 
-__all__ = ["CameraCV", "Light", "Room", "VirtualObject", "load_camera", "load_edits", "load_lights"]
+__all__ = ["CameraCV", "Light", "Room", "VirtualObject", "load_camera", "load_edits", "load_lights", "movable_groups"]
 
 INDIRECT = ("radiosity", "ambient", "none")   # Room.recover's indirect terms
 DOUBT = 0.5            # a pixel under this fraction of its surface's median confidence is blended with its surroundings
 SNAP_RADIUS = 2        # a pixel may take the geometry of a pixel this many pixels away ...
 SNAP_GAIN = 0.5        # ... whose shading explains its captures this much better (misfit ratio) ...
 SNAP_MIN = 0.02        # ... when its own misfit is over this (relative, squared: 14% rms)
+SNAP_CAP = 0.2         # a pixel's misfit counts at most this much in an alignment's score
+ALIGN_WIDTH = 160      # an alignment scores its candidates at most this many pixels wide
+ALIGN_BOUND = 0.02     # objects move at most this share of the room's largest extent (the paper's modelling error) ...
+ALIGN_STEPS = (0.75, 0.375, 0.1875, 0.09375)   # ... in steps of these shares of that bound ...
+ALIGN_STEP_GAIN = 0.01     # ... each kept when it lowers the captures' misfit by this share of the model's own ...
+ALIGN_GAIN = 0.95      # ... and the whole alignment only when it ends below this share of it
 OUTLIER = 0.3          # a capture's reflectance further than this fraction from the median is rejected
 
 
@@ -113,6 +133,15 @@ class CameraCV:
     @property
     def center(self) -> np.ndarray:
         return np.asarray(-self.R.T @ self.t)
+
+    def scaled(self, s: float) -> CameraCV:
+        """The same camera with images ``s`` times the size (pixel centres at integers, as OpenCV)."""
+        w, h = max(1, round(self.width * s)), max(1, round(self.height * s))
+        sx, sy = w / self.width, h / self.height
+        K = np.array(self.K, np.float64, copy=True)
+        K[0, 0], K[0, 1], K[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
+        return CameraCV(K, self.R, self.t, w, h)
 
 
 def _read_json(path: Path) -> Any:
@@ -337,6 +366,39 @@ def _normalised_fill(shape: tuple[int, int], src: np.ndarray, value: np.ndarray,
     return fill
 
 
+def _moved(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str], offsets: dict[str, tuple[float, ...]],
+           where: Path) -> np.ndarray:
+    """The model's vertices with each named group's vertices translated by its offset (a group
+    must own its vertices: one that shares them with another group cannot move alone)."""
+    out = np.array(v, np.float64, copy=True)
+    for name, off in offsets.items():
+        if name not in names:
+            raise InputError(f"{where}: no group {name!r} to move (groups: {', '.join(names)})", param="offsets")
+        g = names.index(name)
+        mine = np.unique(f[fg == g])
+        others = np.unique(f[fg != g])
+        if np.intersect1d(mine, others).size:
+            raise InputError(f"{where}: group {name!r} shares vertices with another group: it cannot move alone",
+                             param="offsets")
+        out[mine] += np.asarray(off, np.float64)
+    return out
+
+
+def movable_groups(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str]) -> list[str]:
+    """Groups that are objects in the room rather than its shell: smaller than 90% of the room's
+    extent along every axis and owning their vertices."""
+    ext = np.ptp(v, axis=0)
+    out = []
+    for g, name in enumerate(names):
+        sel = fg == g
+        if not sel.any():
+            continue
+        mine = np.unique(f[sel])
+        if (np.ptp(v[mine], axis=0) < 0.9 * ext).all() and not np.intersect1d(mine, np.unique(f[~sel])).size:
+            out.append(name)
+    return out
+
+
 SUBPIXEL = 3           # s x s samples over a pixel whose footprint crosses an edge
 
 
@@ -425,7 +487,8 @@ class Room:
     """A photographed room: :meth:`recover` its reflectance, then :meth:`render` it under other
     lights. ``directory`` holds room.obj, camera.json and captures/ (see the module notes)."""
 
-    def __init__(self, directory: str | Path, *, patch_size: float | None = None, light_samples: int = 16) -> None:
+    def __init__(self, directory: str | Path, *, patch_size: float | None = None, light_samples: int = 16,
+                 offsets: dict[str, Any] | None = None, camera: CameraCV | None = None) -> None:
         from hostlink.relight.precompute import build_embree
         from hostlink.relight.scene import load_obj_groups
 
@@ -434,17 +497,22 @@ class Room:
             raise InputError(f"{d}: not a folder", param="room")
         mesh, fg, names = load_obj_groups(d / "room.obj")
         self.directory = d
-        self.cam = load_camera(d / "camera.json")
+        self.cam = load_camera(d / "camera.json") if camera is None else camera
         self.group_names = names
+        self.model_vertices, self.model_faces, self.model_groups = mesh.vertices, mesh.faces, fg
+        self.offsets = {str(k): tuple(float(x) for x in np.asarray(o, np.float64).reshape(3))
+                        for k, o in (offsets or {}).items()}
+        verts = _moved(mesh.vertices, mesh.faces, fg, names, self.offsets, d / "room.obj")
         diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
         self.eps = 1e-4 * diag
-        self.v, self.f, self.fgroup = _subdivide(mesh.vertices, mesh.faces, fg, patch_size or diag / 16)
+        self.patch_size = float(patch_size or diag / 16)
+        self.light_samples = int(light_samples)
+        self.v, self.f, self.fgroup = _subdivide(verts, mesh.faces, fg, self.patch_size)
         a, b, c = (self.v[self.f[:, k]] for k in range(3))
         cr = np.cross(b - a, c - a)
         self.area = 0.5 * np.linalg.norm(cr, axis=1)
         self.pn = cr / np.maximum(2 * self.area, 1e-300)[:, None]
         self.pc = (a + b + c) / 3
-        self.light_samples = int(light_samples)
         self._es = build_embree([(self.v, self.f)])
         tri, bary = _raster_cv(self.cam, self.v, self.f)
         self.cover = tri >= 0
@@ -463,6 +531,7 @@ class Room:
         self.fp = _footprints(self.cam, self.cover, self.X, self.N, self.group, self._es, np.arange(len(self.f)), self.pn)
         self.src = np.arange(len(self.X))       # the pixel whose geometry shades each pixel (:meth:`_snap`)
         self.snapped = 0                         # pixels shaded by another pixel's geometry
+        self.align_misfit: tuple[float, float] | None = None   # (the model's, the aligned model's) (:meth:`align`)
         self.captures = []
         cap = d / "captures"
         files = sorted(cap.glob("*.exr")) if cap.is_dir() else []
@@ -838,6 +907,128 @@ class Room:
         switch = (own_e > SNAP_MIN) & (best_e < SNAP_GAIN * own_e)
         self.snapped = int(switch.sum())
         return np.where(switch, best_j, np.arange(n))
+
+    def align(self, *, bound: float | None = None) -> dict[str, tuple[float, float, float]]:
+        """Offsets that move the room's objects (:func:`movable_groups`) sideways, as the
+        camera sees them, to where the captures put them; ``{}`` when nothing moves the
+        captures' misfit below ``ALIGN_GAIN`` of the model's own (see the module notes).
+
+        ``bound``: the largest move, default ``ALIGN_BOUND`` of the room's largest extent (the
+        modelling error the paper allows). Every candidate is a room built with the offsets and
+        scored by :meth:`_misfit_image` against the captures, with the indirect light of this
+        model's recovery held fixed."""
+        from device.core.imageio import read_hdr_image
+
+        if not self.captures:
+            raise InputError("captures/: no NAME.exr with NAME.json", param="captures")
+        groups = movable_groups(self.model_vertices, self.model_faces, self.model_groups, self.group_names)
+        if not groups:
+            return {}
+        size = float(np.ptp(self.model_vertices, axis=0).max())
+        bound = ALIGN_BOUND * size if bound is None else float(bound)
+        fwd = self.cam.R[2].astype(np.float64).copy()
+        fwd[1] = 0.0
+        if np.linalg.norm(fwd) < 1e-6:          # looking straight down or up: the camera's x axis
+            fwd = np.cross(self.cam.R[0], [0.0, 1.0, 0.0])
+        lat = np.cross([0.0, 1.0, 0.0], fwd)
+        lat /= np.linalg.norm(lat)
+        import cv2
+
+        if self.reflectance is None:
+            self.recover(snap=False)
+        assert self.patch_reflectance is not None
+        H, W = self.cam.height, self.cam.width
+        # the candidates are scored on a camera at most ALIGN_WIDTH pixels wide (the indirect
+        # light and the captures area-averaged to it): silhouettes move by whole pixels there too
+        cam = self.cam.scaled(ALIGN_WIDTH / W) if W > ALIGN_WIDTH else self.cam
+        size2 = (cam.width, cam.height)
+        B, Ei = [], []
+        for _name, p, lights in self.captures:
+            b = luminance(np.asarray(read_hdr_image(p), np.float64))
+            Ed_patch = np.sum([np.outer(self._geometry(L)[1], L.rgb) for L in lights], axis=0)
+            Bp = self._solve(Ed_patch, self.patch_reflectance)
+            e = np.zeros((H, W))
+            e[self.cover] = luminance(math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch))
+            if cam is not self.cam:
+                b = np.asarray(cv2.resize(b, size2, interpolation=cv2.INTER_AREA), np.float64)
+                e = np.asarray(cv2.resize(e, size2, interpolation=cv2.INTER_AREA), np.float64)
+            B.append(b)
+            Ei.append(e)
+        cache: dict[tuple[int, ...], float] = {}
+        scored: np.ndarray | None = None
+
+        fine = bound / 96          # positions in units of the finest step, so candidates are found again
+
+        def cost(pos: dict[str, int]) -> float:
+            key = tuple(pos[g] for g in groups)
+            if key not in cache:
+                offs = {g: tuple(lat * pos[g] * fine) for g in groups if pos[g]}
+                try:
+                    room = Room(self.directory, patch_size=self.patch_size, light_samples=self.light_samples,
+                                offsets=offs, camera=cam)
+                    nonlocal scored
+                    if scored is None:           # the pixels the model itself covers
+                        scored = room.cover.copy()
+                    cache[key] = room._misfit_image(B, Ei, scored)
+                except InputError:      # a capture's lamp inside a moved object
+                    cache[key] = math.inf
+            return cache[key]
+
+        # coordinate descent over each object's sideways offset, the step halving
+        pos = dict.fromkeys(groups, 0)
+        f0 = best = cost(pos)
+        for frac in ALIGN_STEPS:
+            k = max(1, round(frac * 96))
+            moved = True
+            while moved:
+                moved = False
+                for g in groups:
+                    for sgn in (1, -1):
+                        trial = dict(pos)
+                        trial[g] += sgn * k
+                        if abs(trial[g]) > 96:
+                            continue
+                        c = cost(trial)
+                        if c < best - ALIGN_STEP_GAIN * f0:
+                            pos, best, moved = trial, c, True
+        self.align_misfit = (f0, best)
+        if not best <= ALIGN_GAIN * f0:
+            return {}
+        return {g: (float(lat[0] * pos[g] * fine), float(lat[1] * pos[g] * fine), float(lat[2] * pos[g] * fine))
+                for g in groups if pos[g]}
+
+    def _misfit_image(self, B: list[np.ndarray], Ei: list[np.ndarray], scored: np.ndarray) -> float:
+        """How badly this model explains the captures ``B`` (luminance images) with the indirect
+        light ``Ei`` (images) held: per pixel of ``scored``, the relative squared misfit of the
+        best reflectance over the captures (capped at ``SNAP_CAP``; a pixel the model no longer
+        covers counts the cap), summed."""
+        H, W = self.cam.height, self.cam.width
+        b2 = np.zeros((H, W))
+        sbs = np.zeros((H, W))
+        sss = np.zeros((H, W))
+        for (_name, _p, lights), b, ei in zip(self.captures, B, Ei, strict=True):
+            s = ei.copy()
+            s[self.cover] += luminance(np.sum([np.outer(self._geometry(L)[0], L.rgb) for L in lights], axis=0))
+            u = np.ones((H, W), bool)
+            u[self.cover] = ~self._in_view_of_lights(lights)
+            b2 += np.where(u, b * b, 0.0)
+            sbs += np.where(u, b * s, 0.0)
+            sss += np.where(u, s * s, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            e = np.where((sss > 0) & (b2 > 0), (b2 - sbs * sbs / sss) / b2, SNAP_CAP)
+        e = np.where(self.cover, np.minimum(e, SNAP_CAP), SNAP_CAP)
+        return float(e[scored].sum())
+
+    @classmethod
+    def aligned(cls, directory: str | Path, **kw: Any) -> Room:
+        """The room with its objects moved where the captures put them (:meth:`align`)."""
+        room = cls(directory, **kw)
+        offsets = room.align()
+        if not offsets:
+            return room
+        out = cls(directory, offsets=offsets, **kw)
+        out.align_misfit = room.align_misfit
+        return out
 
     def use_reflectance(self, reflectance: np.ndarray, confidence: np.ndarray,
                         source: np.ndarray | None = None) -> None:
