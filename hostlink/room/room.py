@@ -384,6 +384,14 @@ def _moved(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str], offse
     return out
 
 
+def _misfit(b2: np.ndarray, sbs: np.ndarray, sss: np.ndarray, missing: float) -> np.ndarray:
+    """How badly one reflectance explains measured radiances ``b_k`` as ``rho s_k`` (modelled
+    irradiances) over captures k, given ``b2 = sum b^2``, ``sbs = sum b s``, ``sss = sum s^2``:
+    ``min_rho sum (b - rho s)^2 / sum b^2 = 1 - sbs^2 / (b2 sss)``; ``missing`` where a sum is 0."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where((sss > 0) & (b2 > 0), (b2 - sbs * sbs / sss) / b2, missing)
+
+
 def movable_groups(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str]) -> list[str]:
     """Groups that are objects in the room rather than its shell: smaller than 90% of the room's
     extent along every axis and owning their vertices."""
@@ -896,9 +904,7 @@ class Room:
                 Sj = Sl[:, np.maximum(j, 0)]
                 sbs = (Uw * Bl * Sj).sum(axis=0)
                 sss = (Uw * Sj * Sj).sum(axis=0)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    e = (b2 - sbs * sbs / sss) / b2        # misfit of the best reflectance, relative
-                e = np.where(ok & (sss > 0) & (b2 > 0), e, np.inf)
+                e = np.where(ok, _misfit(b2, sbs, sss, np.inf), np.inf)
                 if dy == 0 and dx == 0:
                     own_e = e
                 better = e < best_e
@@ -1014,9 +1020,7 @@ class Room:
             b2 += np.where(u, b * b, 0.0)
             sbs += np.where(u, b * s, 0.0)
             sss += np.where(u, s * s, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            e = np.where((sss > 0) & (b2 > 0), (b2 - sbs * sbs / sss) / b2, SNAP_CAP)
-        e = np.where(self.cover, np.minimum(e, SNAP_CAP), SNAP_CAP)
+        e = np.where(self.cover, np.minimum(_misfit(b2, sbs, sss, SNAP_CAP), SNAP_CAP), SNAP_CAP)
         return float(e[scored].sum())
 
     @classmethod
