@@ -366,6 +366,12 @@ def _normalised_fill(shape: tuple[int, int], src: np.ndarray, value: np.ndarray,
     return fill
 
 
+def _owned(f: np.ndarray, fg: np.ndarray, g: int) -> tuple[np.ndarray, bool]:
+    """Group ``g``'s vertices (indices) and whether it owns them (no other group's face uses one)."""
+    mine = np.unique(f[fg == g])
+    return mine, not np.intersect1d(mine, np.unique(f[fg != g])).size
+
+
 def _moved(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str], offsets: dict[str, tuple[float, ...]],
            where: Path) -> np.ndarray:
     """The model's vertices with each named group's vertices translated by its offset (a group
@@ -374,10 +380,8 @@ def _moved(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str], offse
     for name, off in offsets.items():
         if name not in names:
             raise InputError(f"{where}: no group {name!r} to move (groups: {', '.join(names)})", param="offsets")
-        g = names.index(name)
-        mine = np.unique(f[fg == g])
-        others = np.unique(f[fg != g])
-        if np.intersect1d(mine, others).size:
+        mine, owns = _owned(f, fg, names.index(name))
+        if not owns:
             raise InputError(f"{where}: group {name!r} shares vertices with another group: it cannot move alone",
                              param="offsets")
         out[mine] += np.asarray(off, np.float64)
@@ -398,11 +402,10 @@ def movable_groups(v: np.ndarray, f: np.ndarray, fg: np.ndarray, names: list[str
     ext = np.ptp(v, axis=0)
     out = []
     for g, name in enumerate(names):
-        sel = fg == g
-        if not sel.any():
+        if not (fg == g).any():
             continue
-        mine = np.unique(f[sel])
-        if (np.ptp(v[mine], axis=0) < 0.9 * ext).all() and not np.intersect1d(mine, np.unique(f[~sel])).size:
+        mine, owns = _owned(f, fg, g)
+        if owns and (np.ptp(v[mine], axis=0) < 0.9 * ext).all():
             out.append(name)
     return out
 
@@ -757,6 +760,20 @@ class Room:
                 break
         return B
 
+    def _indirect(self, Ed_patch: np.ndarray, rho_patch: np.ndarray, known: np.ndarray | None = None,
+                  B_known: np.ndarray | None = None) -> np.ndarray:
+        """Indirect irradiance (pixels, 3) over each pixel's footprint: the room's radiosity under
+        the patches' direct irradiance ``Ed_patch`` (:meth:`_solve`, measured patches held),
+        gathered through the form factors."""
+        Bp = self._solve(Ed_patch, rho_patch, known, B_known)
+        return math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch)
+
+    def _pixel_index(self) -> np.ndarray:
+        """(H, W): each covered pixel's index into the per-pixel arrays, -1 elsewhere."""
+        idx = np.full((self.cam.height, self.cam.width), -1)
+        idx[self.cover] = np.arange(len(self.X))
+        return idx
+
     # ---- recovery ------------------------------------------------------------------------------
     def _in_view_of_lights(self, lights: list[Light]) -> np.ndarray:
         """Pixels whose camera ray passes within a pixel and a half of a light sphere in front of
@@ -828,8 +845,7 @@ class Room:
                 known = cu > 0
                 Bm[known] /= cu[known, None]
                 if indirect == "radiosity":
-                    Bp = self._solve(Ed_patch, rho_patch, known, Bm)
-                    Ei = math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch)
+                    Ei = self._indirect(Ed_patch, rho_patch, known, Bm)
                 elif indirect == "ambient":
                     Ei = math.pi * np.outer(cover_ff, B[usable].mean(axis=0))
                 else:
@@ -884,8 +900,7 @@ class Room:
         (the model shows the block where the photographs show the wall behind it)."""
         H, W = self.cam.height, self.cam.width
         n = len(self.X)
-        idx = np.full((H, W), -1)
-        idx[self.cover] = np.arange(n)
+        idx = self._pixel_index()
         yy, xx = np.nonzero(self.cover)
         Bl = np.stack([luminance(b) for b in B])
         Sl = np.stack([luminance(x) for x in S])
@@ -923,6 +938,8 @@ class Room:
         modelling error the paper allows). Every candidate is a room built with the offsets and
         scored by :meth:`_misfit_image` against the captures, with the indirect light of this
         model's recovery held fixed."""
+        import cv2
+
         from device.core.imageio import read_hdr_image
 
         if not self.captures:
@@ -938,8 +955,6 @@ class Room:
             fwd = np.cross(self.cam.R[0], [0.0, 1.0, 0.0])
         lat = np.cross([0.0, 1.0, 0.0], fwd)
         lat /= np.linalg.norm(lat)
-        import cv2
-
         if self.reflectance is None:
             self.recover(snap=False)
         assert self.patch_reflectance is not None
@@ -952,36 +967,35 @@ class Room:
         for _name, p, lights in self.captures:
             b = luminance(np.asarray(read_hdr_image(p), np.float64))
             Ed_patch = np.sum([np.outer(self._geometry(L)[1], L.rgb) for L in lights], axis=0)
-            Bp = self._solve(Ed_patch, self.patch_reflectance)
             e = np.zeros((H, W))
-            e[self.cover] = luminance(math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch))
+            e[self.cover] = luminance(self._indirect(Ed_patch, self.patch_reflectance))
             if cam is not self.cam:
                 b = np.asarray(cv2.resize(b, size2, interpolation=cv2.INTER_AREA), np.float64)
                 e = np.asarray(cv2.resize(e, size2, interpolation=cv2.INTER_AREA), np.float64)
             B.append(b)
             Ei.append(e)
-        cache: dict[tuple[int, ...], float] = {}
-        scored: np.ndarray | None = None
-
         fine = bound / 96          # positions in units of the finest step, so candidates are found again
+
+        def model(offs: dict[str, Any]) -> Room:
+            return Room(self.directory, patch_size=self.patch_size, light_samples=self.light_samples,
+                        offsets=offs, camera=cam)
+
+        unmoved = model({})
+        scored = unmoved.cover          # the pixels the model itself covers
+        pos = dict.fromkeys(groups, 0)
+        cache = {tuple(pos.values()): unmoved._misfit_image(B, Ei, scored)}
 
         def cost(pos: dict[str, int]) -> float:
             key = tuple(pos[g] for g in groups)
             if key not in cache:
-                offs = {g: tuple(lat * pos[g] * fine) for g in groups if pos[g]}
                 try:
-                    room = Room(self.directory, patch_size=self.patch_size, light_samples=self.light_samples,
-                                offsets=offs, camera=cam)
-                    nonlocal scored
-                    if scored is None:           # the pixels the model itself covers
-                        scored = room.cover.copy()
-                    cache[key] = room._misfit_image(B, Ei, scored)
+                    cache[key] = model({g: tuple(lat * pos[g] * fine) for g in groups if pos[g]})._misfit_image(
+                        B, Ei, scored)
                 except InputError:      # a capture's lamp inside a moved object
                     cache[key] = math.inf
             return cache[key]
 
         # coordinate descent over each object's sideways offset, the step halving
-        pos = dict.fromkeys(groups, 0)
         f0 = best = cost(pos)
         for frac in ALIGN_STEPS:
             k = max(1, round(frac * 96))
@@ -1051,8 +1065,7 @@ class Room:
             if sr.shape[:2] != (H, W) or sr.ndim != 3 or sr.shape[2] < 2:
                 raise InputError(f"shading source must be {W} x {H} x 2 (camera.json), got {sr.shape}",
                                  param="shading_source")
-            idx = np.full((H, W), -1)
-            idx[self.cover] = np.arange(len(self.X))
+            idx = self._pixel_index()
             rc = np.rint(np.nan_to_num(sr[self.cover][:, :2], nan=-1.0)).astype(np.int64)
             ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
             j = np.full(len(self.X), -1)
@@ -1206,8 +1219,8 @@ class Room:
             u = self._unit.get(geo)
             if u is None:
                 gp, gq = self._geometry(geo)
-                Bp = self._solve(np.repeat(gq[:, None], 3, axis=1), self.patch_reflectance)
-                u = self._unit[geo] = gp[:, None] + math.pi * self.fp.gather(_mv(self.form_factors(), Bp), self.patch)
+                u = self._unit[geo] = gp[:, None] + self._indirect(np.repeat(gq[:, None], 3, axis=1),
+                                                                    self.patch_reflectance)
             acc += u * np.asarray(L.rgb)
         return self._image(self.reflectance / math.pi * acc[self.src])
 
@@ -1382,9 +1395,7 @@ class Room:
         N = self.pn[patch]
         N = np.where((np.einsum("ij,ij->i", N, self.cam.center - X) < 0)[:, None], -N, N)
         H, W = self.cam.height, self.cam.width
-        old = np.full((H, W), -1)
-        old[self.cover] = np.arange(len(self.X))
-        was = old[cover]
+        was = self._pixel_index()[cover]
         same = (was >= 0) & (self.patch[np.maximum(was, 0)] == patch)
         rho = np.zeros((len(patch), 3))
         rho[same] = self.reflectance[was[same]]
