@@ -69,6 +69,7 @@ _COARSE = (8, 16)  # blocks of the upper hemisphere for the change test (rows, c
 _REPLAN_S = 1.0  # replan the schedule at least this often (sensor seconds)
 _MEMORY_S = 10.0  # the shortest exposure keeps headroom for what was brightest this long ago
 _KEEP_EV = 0.2  # a replanned exposure this close (in EV, time and gain each) to one in use keeps it
+RELEASE_AFTER_FRAMES = 150  # frames after which the start's memory is handed back (5 s at 30 fps)
 
 
 def _ev_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
@@ -231,6 +232,7 @@ class Pipeline:
         self._planner: Any = None
         self._frame = 0
         self._started = False
+        self._steps = 0  # frames processed (the start's memory is handed back once, see step)
         self._stream_on = False
         self._last_sampled: tuple[np.ndarray, float] | None = None  # (coarse energy, monotonic time)
         self._sampled_lum: np.ndarray | None = None  # luminance x solid angle per pixel when last sampled
@@ -359,7 +361,8 @@ class Pipeline:
         lut, dark = geo.lut(1e-3, 1.0, fmt)
         frame_to_map(geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark, geo.rows)
         # width set: the moving-lamp hold kernels load too
-        RollingMerge(geo.rows, width=2 * geo.height, max_slots=2).update(
+        # (and resum_every=1: the periodic re-summation's kernel too, not 256 frames in)
+        RollingMerge(geo.rows, width=2 * geo.height, max_slots=2, resum_every=1).update(
             (1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark)
         warm = np.zeros((16, 32, 3), np.float32)
         warm[:8] = 1.0
@@ -392,6 +395,7 @@ class Pipeline:
             else:
                 if geo.rows == self._geo.rows:  # same output pixels: the rolling estimate carries over
                     self._geo = geo
+                    self._steps = 0  # its frames link kernels for its arrays: release after them
                     log.info("balanced projection table in use")
         if self._merge is None:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
@@ -416,6 +420,13 @@ class Pipeline:
                           "total": time.perf_counter() - t0, "capture_cpu": c1 - c0,
                           "process_cpu": time.process_time() - c2}
         self._update_stats(result)
+        self._steps += 1
+        if self._steps == RELEASE_AFTER_FRAMES:
+            # the start is over (every kernel the frames use is linked, the tables swapped in):
+            # hand back its garbage and the start's library pages once (device.core.memory)
+            from device.core.memory import release_memory
+
+            await asyncio.to_thread(release_memory)
         self.latest = result
         return result
 

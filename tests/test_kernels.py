@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from device.cli.kernels import seed_cache, shipped_kernel_dirs
 from device.core import memory
 
@@ -94,3 +96,62 @@ def test_tune_allocator_leaves_settings_the_environment_made(monkeypatch) -> Non
     assert calls == [(memory._M_MMAP_THRESHOLD, 256 * 1024), (memory._M_TRIM_THRESHOLD, 1 << 20)]
     monkeypatch.setattr(memory, "_libc", lambda: None)  # not glibc: nothing to do
     assert memory.tune_allocator() is False
+
+
+def test_release_library_pages_advises_read_only_startup_mappings_only(monkeypatch, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    calls: list[tuple[int, int, int]] = []
+
+    class FakeLibc:
+        def madvise(self, addr: int, length: int, advice: int) -> int:
+            calls.append((addr, length, advice))
+            return 0
+
+        def mallopt(self, param: int, value: int) -> int:
+            return 1
+
+        def malloc_trim(self, pad: int) -> int:
+            return 1
+
+    maps = tmp_path / "maps"
+    maps.write_text(
+        "1000-3000 r--p 00000000 08:01 1 /venv/llvmlite/binding/libllvmlite.so\n"
+        "3000-8000 r-xp 00002000 08:01 1 /venv/llvmlite/binding/libllvmlite.so\n"
+        "8000-9000 rw-p 00007000 08:01 1 /venv/llvmlite/binding/libllvmlite.so\n"
+        "9000-a000 r-xp 00000000 08:01 2 /venv/cv2/cv2.abi3.so\n"
+        "a000-b000 r-xp 00000000 08:01 3 /usr/lib/libc.so.6\n"
+        "b000-c000 rw-p 00000000 00:00 0 \n")
+    monkeypatch.setattr(memory, "_libc", lambda: FakeLibc())
+    assert memory.release_library_pages(str(maps)) == 0x2000 + 0x5000 + 0x1000
+    assert calls == [(0x1000, 0x2000, 21), (0x3000, 0x5000, 21), (0x9000, 0x1000, 21)]
+
+
+def test_release_library_pages_drops_llvm_pages_and_kernels_still_run() -> None:
+    """On this kernel (MADV_PAGEOUT, Linux 5.4+): numba's LLVM pages leave the resident set,
+    and a cached kernel and a fresh compile still run after it."""
+    code = """
+import re, numba, numpy as np
+from device.core import memory
+def llvm_kb():
+    kb, cur = 0, False
+    for line in open('/proc/self/smaps'):
+        if re.match(r'^[0-9a-f]+-[0-9a-f]+ ', line):
+            cur = 'libllvmlite' in line
+        elif cur and line.startswith('Rss:'):
+            kb += int(line.split()[1])
+    return kb
+f = numba.njit(lambda a: a.sum() * 2.0)
+assert f(np.ones(10)) == 20.0
+before = llvm_kb()
+done = memory.release_library_pages()
+after = llvm_kb()
+g = numba.njit(lambda a: a.max() + 1.0)
+print(before, done, after, f(np.ones(3)), g(np.arange(4.0)))
+"""
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    before, done, after, f3, g4 = out.stdout.split()
+    if int(done) == 0:
+        pytest.skip("madvise(MADV_PAGEOUT) not supported here")
+    assert int(before) > 10_000, out.stdout  # > 10 MB of LLVM resident after one compile
+    assert int(after) < int(before) / 4, out.stdout
+    assert (float(f3), float(g4)) == (6.0, 4.0)

@@ -366,3 +366,37 @@ def test_disk_cache_restores_identical_tables(tmp_path):  # type: ignore[no-unty
     third = Projector(cal, equirect_height=32, nside=8, cache=False, cache_dir=tmp_path)
     np.testing.assert_array_equal(third.project(img).healpix, a.healpix)
     assert cache_path(tmp_path, ("x",)) != files[0]
+
+
+def test_the_table_builds_sparse_assembly_matches_scipy() -> None:
+    """The build assembles its CSR itself (a service that builds tables imports no scipy):
+    duplicates summed, columns sorted, rows added, as scipy.sparse does it."""
+    import scipy.sparse as sp
+
+    from device.projection.tables import _add_rows, _assemble_csr, _Coo
+
+    rng = np.random.default_rng(5)
+    n, m = 40, 300
+    parts, rows, cols, vals = [], [], [], []
+    for lo in range(0, m, 60):  # parts over disjoint, increasing column ranges
+        k = 500
+        r = rng.integers(0, n - 5, k)  # the last rows stay empty
+        c = rng.integers(lo, lo + 60, k)
+        v = rng.random(k)
+        parts.append(_Coo.summed(r, c, v, m))
+        rows.append(r), cols.append(c), vals.append(v)
+    ref = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, m))
+    ref.sum_duplicates()
+    W = _assemble_csr(parts, n, m)
+    assert not parts  # consumed
+    np.testing.assert_array_equal(W.indptr, ref.indptr)
+    np.testing.assert_array_equal(W.indices, ref.indices)
+    np.testing.assert_allclose(W.data, ref.data, rtol=1e-14)
+    er = np.repeat(np.arange(n - 5, n), 3)
+    ec, ev = rng.integers(0, m, er.size), rng.random(er.size)
+    W2 = _add_rows(W, _Coo.summed(er, ec, ev, m))
+    ref2 = (ref + sp.csr_matrix((ev, (er, ec)), shape=(n, m))).tocsr()
+    ref2.sum_duplicates()
+    np.testing.assert_array_equal(W2.indptr, ref2.indptr)
+    np.testing.assert_array_equal(W2.indices, ref2.indices)
+    np.testing.assert_allclose(W2.data, ref2.data, rtol=1e-14)

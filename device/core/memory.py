@@ -9,7 +9,14 @@ arenas at two and fixes the thresholds (arrays of 256 kB and more are mapped and
 freed heap tops beyond 1 MB are returned), as the environment variables ``MALLOC_ARENA_MAX``,
 ``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_`` would; call it before threads start.
 :func:`release_memory` returns what a one-off burst of allocations (building projection tables)
-left behind.
+left behind, and :func:`release_library_pages` the start's library pages: numba links its cached
+kernels with LLVM (``libllvmlite.so``, 180 MB on disk), which leaves ~40-65 MB of the library's
+read-only pages resident although no kernel runs LLVM code, and OpenCV's module init (thousands
+of bindings registered) leaves ~12 MB of which a frame's colour conversion uses ~3. They are
+clean file pages, so the kernel would drop them under memory pressure anyway; they are dropped
+now (``MADV_PAGEOUT``, Linux 5.4+), and whatever a later call needs faults back in from the page
+cache. Writable and relocated pages are never touched (the advice is given for read-only
+mappings only, and ``MADV_PAGEOUT`` never discards data).
 """
 
 from __future__ import annotations
@@ -19,11 +26,13 @@ import ctypes.util
 import gc
 import os
 
-__all__ = ["release_memory", "tune_allocator"]
+__all__ = ["release_library_pages", "release_memory", "tune_allocator"]
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 _M_ARENA_MAX = -8
+_MADV_PAGEOUT = 21
+_STARTUP_LIBS = ("libllvmlite", "cv2.abi3")  # mostly one-off pages (module doc)
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -50,8 +59,34 @@ def tune_allocator(arenas: int = 2, mmap_threshold: int = 256 * 1024, trim_thres
 
 
 def release_memory() -> None:
-    """Collect garbage and give freed heap memory back to the system."""
+    """Collect garbage, give freed heap memory back to the system, and the start's library pages."""
     gc.collect()
     lib = _libc()
     if lib is not None:
         lib.malloc_trim(0)
+    release_library_pages()
+
+
+def release_library_pages(maps: str = "/proc/self/maps") -> int:
+    """Advise the kernel to reclaim the resident read-only pages of the libraries whose pages are
+    mostly one-off (see the module doc); the bytes advised (0 where unsupported)."""
+    lib = _libc()
+    if lib is None or not hasattr(lib, "madvise"):
+        return 0
+    try:
+        with open(maps) as f:
+            lines = f.readlines()
+    except OSError:
+        return 0
+    madvise = lib.madvise
+    if hasattr(madvise, "restype"):  # a C function (64-bit addresses: not ctypes' default int)
+        madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    done = 0
+    for line in lines:
+        parts = line.split()
+        if len(parts) < 6 or "w" in parts[1] or not any(n in parts[5] for n in _STARTUP_LIBS):
+            continue
+        lo, hi = (int(x, 16) for x in parts[0].split("-"))
+        if madvise(lo, hi - lo, _MADV_PAGEOUT) == 0:
+            done += hi - lo
+    return done

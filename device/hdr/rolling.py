@@ -401,8 +401,9 @@ class RollingMerge:
     move_reach: int = 6  # output pixels around a held one where its energy may go (0: held in place)
 
     def __post_init__(self) -> None:
-        self.m = np.zeros((self.max_slots, self.pixels, 3), np.float32)
-        self.p = np.zeros((self.max_slots, self.pixels, 3), np.float32)
+        # slots are allocated as exposures arrive (a bracket often uses fewer than max_slots)
+        self.m = np.zeros((0, self.pixels, 3), np.float32)
+        self.p = np.zeros((0, self.pixels, 3), np.float32)
         self.num = np.zeros((self.pixels, 3), np.float64)
         self.den = np.zeros((self.pixels, 3), np.float64)
         self.bound = np.zeros((self.pixels, 3), np.float32)
@@ -421,6 +422,9 @@ class RollingMerge:
         if len(self.keys) < self.max_slots:
             self.keys.append(key)
             self.frames.append(frame)
+            if len(self.m) < len(self.keys):
+                grow = np.zeros((len(self.keys) - len(self.m), self.pixels, 3), np.float32)
+                self.m, self.p = np.concatenate([self.m, grow]), np.concatenate([self.p, grow])
             return len(self.keys) - 1
         s = int(np.argmin(self.frames))  # the slot updated longest ago
         self._clear(s)

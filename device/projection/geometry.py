@@ -171,15 +171,18 @@ class _LatLong:
         c = (phi * (self.cols / (2 * np.pi))).astype(np.int64) % self.cols
         return np.where(r < self.rows, r * self.cols + c, -1)
 
-    def points(self, fr: np.ndarray) -> np.ndarray:
-        """Directions (size, len(fr)**2, 3) at fractional positions ``fr`` inside every pixel."""
-        r = np.arange(self.rows)[:, None, None, None] + fr[None, None, :, None]
-        c = np.arange(self.cols)[None, :, None, None] + fr[None, None, None, :]
+    def points(self, fr: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        """Directions (hi - lo, len(fr)**2, 3) at fractional positions ``fr`` inside pixels
+        ``lo .. hi`` (row-major; default every pixel)."""
+        hi = self.size if hi is None else hi
+        p = np.arange(lo, hi)
+        r = (p // self.cols)[:, None, None] + fr[None, :, None]
+        c = (p % self.cols)[:, None, None] + fr[None, None, :]
         theta = r * (np.pi / self.full_rows)
         phi = c * (2 * np.pi / self.cols)
         st = np.sin(theta)
         d = np.stack(np.broadcast_arrays(st * np.sin(phi), np.cos(theta), -st * np.cos(phi)), -1)
-        return d.reshape(self.size, fr.size**2, 3)
+        return d.reshape(hi - lo, fr.size**2, 3)
 
 
 @dataclass(frozen=True)
@@ -196,13 +199,14 @@ class _Healpix:
     def bin(self, d: np.ndarray) -> np.ndarray:
         return vec2pix_nest(self.nside, d)
 
-    def points(self, fr: np.ndarray) -> np.ndarray:
-        ix, iy, face = nest_to_xyf(self.nside, np.arange(self.size))
+    def points(self, fr: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        hi = self.size if hi is None else hi
+        ix, iy, face = nest_to_xyf(self.nside, np.arange(lo, hi))
         x = (ix[:, None, None] + fr[None, :, None]) / self.nside
         y = (iy[:, None, None] + fr[None, None, :]) / self.nside
         f = np.broadcast_to(face[:, None, None], (*x.shape[:1], fr.size, fr.size))
         return face_xy_to_directions(f, np.broadcast_to(x, f.shape), np.broadcast_to(y, f.shape)
-                                     ).reshape(self.size, fr.size**2, 3)
+                                     ).reshape(hi - lo, fr.size**2, 3)
 
 
 _Grid = _LatLong | _Healpix

@@ -17,7 +17,7 @@ from device.core.errors import InputError
 from device.core.healpix import npix
 
 from .kernels import _spmv_rgb, _spmv_rgb_fix
-from .tables import _TABLE_CACHE, _TABLE_CACHE_SIZE, _build_all
+from .tables import _TABLE_CACHE, _TABLE_CACHE_SIZE, _TABLE_KEEP, _build_all
 
 __all__ = ["LOWER_POLICIES", "LowerPolicy", "ProbeMaps", "Projector"]
 
@@ -141,10 +141,14 @@ class Projector:
                     save_built(path, built)
                 except OSError as e:  # a read-only or full disk costs only the next start's time
                     log.warning("cannot write projection cache %s: %s", path, e)
+                else:  # serve from the mapped file (clean pages, see diskcache), not the build's arrays
+                    built = load_built(path) or built
         if cache:
             _TABLE_CACHE[key] = built
-            while len(_TABLE_CACHE) > _TABLE_CACHE_SIZE:
-                _TABLE_CACHE.pop(next(iter(_TABLE_CACHE)))
+            if not any(b is built for b in _TABLE_KEEP):  # (identity: a dataclass of arrays)
+                _TABLE_KEEP.append(built)
+            del _TABLE_KEEP[:-_TABLE_CACHE_SIZE]
+        self._built = built  # keeps the memo's (weak) entry while this projector lives
         self.lens_mask = built.lens_mask
         self.pixel_gain = built.pixel_gain
         self._inv_gain = built.inv_gain

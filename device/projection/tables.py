@@ -12,12 +12,12 @@ Bishop, Fienberg & Holland 1975, "Discrete Multivariate Analysis" (iterative pro
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
 import numba
 import numpy as np
-import scipy.sparse as sp
 
 from device.core.calibration import Calibration, FisheyeModel
 from device.core.sphere import CAMERA_TO_PROBE
@@ -51,6 +51,43 @@ class _Table:
     col_rows: np.ndarray  # (nnz,) int32
 
 
+_COVER_CHUNK = 1 << 16
+
+
+@dataclass
+class _Coo:
+    """Sparse entries sorted by (row, column), no duplicates (what the build's chunks hand on)."""
+
+    row: np.ndarray  # int32
+    col: np.ndarray  # int32
+    data: np.ndarray  # float64
+
+    @property
+    def nnz(self) -> int:
+        return len(self.data)
+
+    @classmethod
+    def summed(cls, row: np.ndarray, col: np.ndarray, val: np.ndarray, m: int) -> _Coo:
+        """Entries sorted, duplicates summed (in their order of arrival)."""
+        key = row.astype(np.int64) * m + col
+        order = np.argsort(key, kind="stable")
+        key = key[order]
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else np.zeros(0, np.int64)
+        data = np.add.reduceat(np.asarray(val, np.float64)[order], starts) if len(key) else np.zeros(0)
+        return cls((key[starts] // m).astype(np.int32), (key[starts] % m).astype(np.int32), data)
+
+
+@dataclass
+class _Csr:
+    """An (n, m) matrix in CSR form, each row's columns sorted. The table build's own (it needs
+    no more than this, and a service that builds its tables imports no scipy: ~20 MB on a board)."""
+
+    indptr: np.ndarray  # (n+1,) int64
+    indices: np.ndarray  # (nnz,) int32
+    data: np.ndarray  # (nnz,) float64
+    shape: tuple[int, int]
+
+
 class _Geometry:
     """What the table builder needs to know about the lens and the valid region."""
 
@@ -58,14 +95,25 @@ class _Geometry:
         self.fisheye = fisheye
         self.valid = valid
         self.w, self.h = fisheye.image_size
-        from scipy import ndimage  # only when tables are built (a warm start loads them: no import)
+        import cv2  # (the 4-neighbour erosion, as scipy.ndimage.binary_erosion with border 0)
 
-        self.eroded = ndimage.binary_erosion(valid, border_value=0)
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        self.eroded = cv2.erode(valid.astype(np.uint8), cross, borderType=cv2.BORDER_CONSTANT,
+                                borderValue=0).astype(bool)
         self.theta_valid = min(np.deg2rad(fisheye.fov_deg / 2), float(_theta_table(fisheye)[1][-1]))
 
     def covered(self, d: np.ndarray, margin: bool = True) -> np.ndarray:
         """True where the probe direction lands on a valid pixel (with ``margin``: on a valid
-        pixel whose 4 neighbours are valid too, i.e. at least one pixel inside)."""
+        pixel whose 4 neighbours are valid too, i.e. at least one pixel inside). In slices of
+        ``_COVER_CHUNK`` directions: the projection's temporaries for a table's 1.2M test points
+        would be ~100 MB at once."""
+        flat = d.reshape(-1, 3)
+        out = np.empty(len(flat), bool)
+        for i in range(0, len(flat), _COVER_CHUNK):
+            out[i:i + _COVER_CHUNK] = self._covered(flat[i:i + _COVER_CHUNK], margin)
+        return out.reshape(d.shape[:-1])
+
+    def _covered(self, d: np.ndarray, margin: bool) -> np.ndarray:
         dc = d @ CAMERA_TO_PROBE
         uv = self.fisheye.project(dc)
         iu = np.rint(uv[..., 0]).astype(np.int64)
@@ -142,7 +190,7 @@ def _ipf(indptr, indices, data, row_target, interior, col_target, sweeps, tol, o
             break
 
 
-def _balance(W: sp.csr_matrix, row_target: np.ndarray, interior: np.ndarray,
+def _balance(W: _Csr, row_target: np.ndarray, interior: np.ndarray,
              col_target: np.ndarray, sweeps: int = 150, tol: float = 1e-5,
              omega: float = 1.9) -> float:
     """Balance ``W`` in place: interior rows -> ``row_target``, columns -> ``col_target``.
@@ -154,17 +202,18 @@ def _balance(W: sp.csr_matrix, row_target: np.ndarray, interior: np.ndarray,
     Returns the final max relative row residual over the interior rows.
     """
     data = np.ascontiguousarray(W.data, dtype=np.float64)
-    _ipf(W.indptr.astype(np.int64), W.indices.astype(np.int64), data,
-                 np.asarray(row_target, np.float64), np.asarray(interior, np.bool_),
-                 np.asarray(col_target, np.float64), sweeps, tol, omega)
+    # (no int64 copies of the structure: the build's peak memory)
+    _ipf(W.indptr.astype(np.int64, copy=False), W.indices.astype(np.int32, copy=False), data,
+         np.asarray(row_target, np.float64), np.asarray(interior, np.bool_),
+         np.asarray(col_target, np.float64), sweeps, tol, omega)
     W.data = data
-    rs = np.bincount(np.repeat(np.arange(W.shape[0]), np.diff(W.indptr)), weights=data,
+    rs = np.bincount(np.repeat(np.arange(W.shape[0], dtype=np.int32), np.diff(W.indptr)), weights=data,
                      minlength=W.shape[0])
     ok = interior & (rs > 0)
     return float(np.max(np.abs(rs[ok] / row_target[ok] - 1.0), initial=0.0))
 
 
-def _chunk_entries(grid: _Grid, ch: _Chunk, m: int) -> sp.coo_matrix:
+def _chunk_entries(grid: _Grid, ch: _Chunk, m: int) -> _Coo:
     """Entries of eq. (O) for one chunk, a 5-point rule per subpixel (1/2 centre, 1/8 corners).
 
     The corners make sure that thin overlaps (a sliver of a fisheye pixel inside an output
@@ -180,29 +229,79 @@ def _chunk_entries(grid: _Grid, ch: _Chunk, m: int) -> sp.coo_matrix:
     w = np.concatenate([np.where(one, ch.omega, 0.5 * ch.omega),
                         np.repeat(0.125 * ch.omega[split], 4)])
     ok = j >= 0
-    W = sp.csr_matrix((w[ok], (j[ok], i[ok])), shape=(grid.size, m))
-    W.sum_duplicates()
-    return W.tocoo()
+    return _Coo.summed(j[ok], i[ok], w[ok], m)
 
 
-def _build_table(grid: _Grid, geo: _Geometry, parts: list[sp.coo_matrix],
-                 gain: np.ndarray, balance: bool = True) -> _Table:
+def _assemble_csr(parts: list[_Coo], n: int, m: int) -> _Csr:
+    """The (n, m) CSR matrix of the chunks' entries, written in place, part by part (emptying
+    ``parts``), with no COO copy of the whole (the build's peak memory). Exact because each part
+    is duplicate-free (``_Coo.summed``) and the parts hold disjoint, increasing column ranges
+    (bands of fisheye rows), so each row's columns come out sorted."""
+    counts = np.zeros(n, np.int64)
+    for p in parts:
+        counts += np.bincount(p.row, minlength=n)
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    indices = np.empty(int(indptr[-1]), np.int32)
+    data = np.empty(int(indptr[-1]), np.float64)
+    fill = indptr[:-1].copy()
+    last = -1
+    for p in parts:
+        if p.nnz:
+            assert int(p.col.min()) > last, "parts must hold increasing column ranges"
+            last = int(p.col.max())
+        r = p.row.astype(np.int64)  # (sorted by row, then column)
+        first = np.searchsorted(r, r, side="left")  # each entry's rank within its row in this part
+        pos = fill[r] + (np.arange(len(r)) - first)
+        indices[pos] = p.col
+        data[pos] = p.data
+        fill += np.bincount(r, minlength=n)
+    parts.clear()
+    return _Csr(indptr, indices, data, (n, m))
+
+
+def _add_rows(W: _Csr, extra: _Coo) -> _Csr:
+    """``W`` with the entries of ``extra`` (sorted, in rows that are empty in ``W``)."""
+    n, _ = W.shape
+    counts = np.diff(W.indptr) + np.bincount(extra.row, minlength=n)
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    old_rows = np.repeat(np.arange(n), np.diff(W.indptr))
+    pos_old = indptr[old_rows] + (np.arange(len(old_rows)) - W.indptr[old_rows])
+    r = extra.row.astype(np.int64)
+    pos_new = indptr[r] + (np.arange(len(r)) - np.searchsorted(r, r, side="left"))
+    indices = np.empty(int(indptr[-1]), np.int32)
+    data = np.empty(int(indptr[-1]), np.float64)
+    indices[pos_old], data[pos_old] = W.indices, W.data
+    indices[pos_new], data[pos_new] = extra.col, extra.data
+    return _Csr(indptr, indices, data, W.shape)
+
+
+def _interior(grid: _Grid, geo: _Geometry, balance: bool) -> np.ndarray:
+    """Output pixels whose 3 x 3 grid of points (edges included) is all well inside the valid
+    region (a coarse table tests the corners only: a quarter of the projections), by bands of
+    pixels (all the points at once are 28 MB at 256 x 512)."""
+    fr = np.linspace(0.0, 1.0, 3) if balance else np.array([0.0, 1.0])
+    out = np.empty(grid.size, bool)
+    step = max(1, _COVER_CHUNK // fr.size**2)
+    for lo in range(0, grid.size, step):
+        hi = min(grid.size, lo + step)
+        out[lo:hi] = geo.covered(grid.points(fr, lo, hi)).all(axis=1)
+    return out
+
+
+def _build_table(grid: _Grid, geo: _Geometry, parts: list[_Coo],
+                 gain: np.ndarray, balance: bool = True, interior: np.ndarray | None = None) -> _Table:
     """Assemble eq. (O), fill holes by gather, balance (IPF; ``balance=False``: a coarse table,
     each output pixel the area-weighted mean of its footprint, rows not at their exact solid
-    angle) and normalise to eq. (P)."""
+    angle) and normalise to eq. (P). Consumes ``parts`` (emptied once assembled: on a board the
+    build's peak memory is the service's)."""
     n, m = grid.size, geo.w * geo.h
-    row = np.concatenate([p.row for p in parts] or [np.zeros(0, np.int64)])
-    col = np.concatenate([p.col for p in parts] or [np.zeros(0, np.int64)])
-    wt = np.concatenate([p.data for p in parts] or [np.zeros(0)])
-    W = sp.csr_matrix((wt, (row, col)), shape=(n, m), dtype=np.float64)
-    W.sum_duplicates()
+    if interior is None:
+        interior = _interior(grid, geo, balance)
+    W = _assemble_csr(parts, n, m)
     omega = grid.solid_angle()
     col_target = np.bincount(W.indices, weights=W.data, minlength=m)
-
-    # Interior pixels: a 3 x 3 grid of points (edges included) all well inside the valid region
-    # (a coarse table tests the corners only: a quarter of the projections)
-    fr = np.linspace(0.0, 1.0, 3) if balance else np.array([0.0, 1.0])
-    interior = np.asarray(geo.covered(grid.points(fr).reshape(-1, 3)).reshape(n, -1).all(axis=1))
 
     # Hole-free fallback: pixels with no subpixel but a covered centre gather bilinearly
     empty = np.diff(W.indptr) == 0
@@ -210,27 +309,31 @@ def _build_table(grid: _Grid, geo: _Geometry, parts: list[sp.coo_matrix],
     holes = np.flatnonzero(empty & geo.covered(centre, margin=False))
     if holes.size:
         k, p, g = geo.gather(centre[holes])
-        extra = sp.csr_matrix((g * omega[holes[k]], (holes[k], p)), shape=(n, m))
-        W = (W + extra).tocsr()
-        W.sum_duplicates()
-    W.sort_indices()
+        W = _add_rows(W, _Coo.summed(holes[k], p, g * omega[holes[k]], m))
 
     # With no free row the two marginals must have the same total
     if not np.any(~interior & (np.diff(W.indptr) > 0)):
         col_target *= omega[interior].sum() / col_target.sum()
     resid = _balance(W, omega, interior, col_target) if balance else float("nan")
 
-    rowsum = np.bincount(np.repeat(np.arange(n), np.diff(W.indptr)), weights=W.data, minlength=n)
+    # (arrays of nnz entries one at a time, in place where they can be: the build's peak memory)
+    row_of = np.repeat(np.arange(n, dtype=np.int32), np.diff(W.indptr))
+    rowsum = np.bincount(row_of, weights=W.data, minlength=n)
     coverage = np.where(interior, 1.0, np.clip(rowsum / omega, 0.0, 1.0))
     coverage[rowsum <= 0] = 0.0
-    row_of = np.repeat(np.arange(n), np.diff(W.indptr))
-    norm = W.data / rowsum[row_of]  # (P): geometric weights, rows sum to 1
-    data = (norm * gain[W.indices]).astype(np.float32)
+    norm = W.data  # W's values are not needed after this
+    norm /= rowsum[row_of]  # (P): geometric weights, rows sum to 1
+    data = gain[W.indices]
+    data *= norm
+    data = data.astype(np.float32)
     geo_sum = np.bincount(row_of, weights=norm, minlength=n)
-    T = W.tocsc()
+    del norm
+    # the transpose's structure (what W.tocsc() gives: each column's rows ascending)
+    col_ptr = np.zeros(m + 1, np.int64)
+    np.cumsum(np.bincount(W.indices, minlength=m), out=col_ptr[1:])
+    col_rows = row_of[np.argsort(W.indices, kind="stable")]
     return _Table(W.indptr.astype(np.int64), W.indices.astype(np.int32), data, geo_sum,
-                  coverage.astype(np.float32), omega, resid, T.indptr.astype(np.int64),
-                  T.indices.astype(np.int32))
+                  coverage.astype(np.float32), omega, resid, col_ptr, col_rows)
 
 
 def _pixel_gain(cal: Calibration, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -260,10 +363,13 @@ class _Built:
     tables: dict[str, _Table]
 
 
-# Tables built per (calibration id, geometry parameters), most recent last; a pure memo so that
-# a service restart or a second projector on the same calibration does not rebuild them.
-_TABLE_CACHE: dict[tuple[object, ...], _Built] = {}
-_TABLE_CACHE_SIZE = 4
+# Tables built per (calibration id, geometry parameters); a pure memo so that a service restart or a
+# second projector on the same calibration does not rebuild them. Weak: an entry lives while a
+# projector uses it or while it is among the _TABLE_CACHE_SIZE most recent (_TABLE_KEEP), so the
+# staged start's coarse table goes once the balanced one replaces it (~15 MB on the board).
+_TABLE_CACHE: weakref.WeakValueDictionary[tuple[object, ...], _Built] = weakref.WeakValueDictionary()
+_TABLE_KEEP: list[_Built] = []
+_TABLE_CACHE_SIZE = 1
 
 
 def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside: int,
@@ -286,14 +392,15 @@ def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside:
                              "equirect": lambda: _LatLong(equirect_height, 2 * equirect_height, equirect_height),
                              "healpix": lambda: _Healpix(nside)}
     grids: dict[str, _Grid] = {k: every[k]() for k in maps}
-    parts: dict[str, list[sp.coo_matrix]] = {k: [] for k in grids}
+    geo = _Geometry(fe, valid)
+    interiors = {k: _interior(g, geo, balance) for k, g in grids.items()}  # before the parts: peak memory
+    parts: dict[str, list[_Coo]] = {k: [] for k in grids}
     omega_pix = np.zeros(m)
     for ch in _subpixel_chunks(fe, valid, subdiv):
         omega_pix += np.bincount(ch.pix, weights=ch.omega, minlength=m)
         for name, grid in grids.items():
             parts[name].append(_chunk_entries(grid, ch, m))
-    geo = _Geometry(fe, valid)
-    tables = {k: _build_table(g, geo, parts[k], gain, balance) for k, g in grids.items()}
+    tables = {k: _build_table(g, geo, parts[k], gain, balance, interiors.pop(k)) for k, g in grids.items()}
     inv_gain = np.where(gain > 0, 1.0 / np.where(gain > 0, gain, 1.0), 0.0)
     arrays = [valid, gain, inv_gain, omega_pix]
     for t in tables.values():
