@@ -218,6 +218,7 @@ class Pipeline:
             raise InputError("calibration needs fisheye and response sections", param="calibration")
         self.camera = camera
         self.calibration = calibration
+        self._calibration_id = calibration.id  # a content hash: once, not per frame (0.4 ms)
         self.config = config or PipelineConfig()
         self.latest: FrameResult | None = None
         self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0}
@@ -362,8 +363,9 @@ class Pipeline:
         frame_to_map(geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark, geo.rows)
         # width set: the moving-lamp hold kernels load too
         # (and resum_every=1: the periodic re-summation's kernel too, not 256 frames in)
-        RollingMerge(geo.rows, width=2 * geo.height, max_slots=2, resum_every=1).update(
+        fused = RollingMerge(geo.rows, width=2 * geo.height, max_slots=2, resum_every=1).update(
             (1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark)
+        geo.weighted_luminance(fused)
         warm = np.zeros((16, 32, 3), np.float32)
         warm[:8] = 1.0
         sampler = self._make_sampler(self.config.sampler)
@@ -475,7 +477,8 @@ class Pipeline:
         t2 = time.perf_counter()
         sensor_t = float(frame.meta.timestamp_s)
         now = time.time()
-        coarse = geo.coarse_energy(equirect)
+        lum_w = geo.weighted_luminance(fused)
+        coarse = geo.coarse_energy(lum_w)
         if self._changed_since is None or self._changed_since.shape != merge.changed.shape:
             self._changed_since = np.zeros_like(merge.changed)
         self._changed_since |= merge.changed
@@ -487,7 +490,7 @@ class Pipeline:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp = self._frame, now
             self._last_sampled = (coarse, time.monotonic())
-            self._sampled_lum = luminance(fused.astype(np.float64)) * geo.solid_angle_out
+            self._sampled_lum = lum_w
             self._changed_since[:] = False
             self._guessed = bool(merge.held.any())
         t3 = time.perf_counter()
@@ -503,7 +506,7 @@ class Pipeline:
             exposures=[c[0] for c in sched.controls], gains=[c[1] for c in sched.controls],
             exposure_s=exposure, gain=gain,
             timings={"prepare": t1 - t0, "fusion": t2 - t1, "sampling": t3 - t2},
-            skipped=skipped, calibration_id=self.calibration.id, unit=self.unit,
+            skipped=skipped, calibration_id=self._calibration_id, unit=self.unit,
             saturated_fraction=bounded, sensor_time_s=sensor_t,
             preview_source=(lambda p=preview, g_=geo: g_.linear_frame(*p)) if preview is not None else None)
 
@@ -621,11 +624,23 @@ class _Geometry:
         resp = calibration.response
         assert resp is not None
         self.full_scale = float(np.max(resp.inverse[-1]))
+        self._luts: dict[tuple[Any, ...], tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]] = {}
 
     def lut(self, exposure: float, gain: float, fmt: Any, black: float = 0.0, white: float = 255.0
             ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """The fusion LUT of one exposure (memoised in ``device.hdr.fusion``) and its bounds
-        (:func:`device.hdr.rolling.lut_bounds`)."""
+        """The fusion LUT of one exposure and its bounds (:func:`device.hdr.rolling.lut_bounds`),
+        memoised per (exposure, gain, format, levels): a live probe repeats a few exposures, and
+        the fusion module's own memo hashes the response per call."""
+        key = (float(exposure), float(gain), fmt, float(black), float(white))
+        hit = self._luts.get(key)
+        if hit is None:
+            if len(self._luts) >= 64:
+                self._luts.clear()
+            hit = self._luts[key] = self._build_lut(exposure, gain, fmt, black, white)
+        return hit
+
+    def _build_lut(self, exposure: float, gain: float, fmt: Any, black: float, white: float
+                   ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         from device.hdr.fusion import FusionSettings, _sanitized, packed_lut
         from device.hdr.rolling import lut_bounds
 
@@ -643,16 +658,20 @@ class _Geometry:
                              log_sigma=resp.log_sigma)
         return lut, lut_bounds(lut)
 
-    def coarse_energy(self, equirect: np.ndarray) -> np.ndarray:
-        """Luminance x solid angle of the upper hemisphere in _COARSE blocks."""
-        up = luminance(equirect[: self.height // 2].astype(np.float64))
+    def weighted_luminance(self, fused: np.ndarray) -> np.ndarray:
+        """Luminance x solid angle of each upper-hemisphere output pixel (rows,) float64: what
+        the change tests compare, computed once per frame."""
+        from device.hdr.rolling import weighted_luminance
+
+        return weighted_luminance(fused, self.solid_angle_out)
+
+    def coarse_energy(self, lum_w: np.ndarray) -> np.ndarray:
+        """:meth:`weighted_luminance` summed in _COARSE blocks of the upper hemisphere."""
         r, c = _COARSE
-        h, w = up.shape
+        h, w = self.height // 2, 2 * self.height
         if h % r or w % c:
-            return np.asarray([float((up * self.solid_angle_out.reshape(h, w)).sum())])
-        omega_rows = self.solid_angle_out.reshape(h, w)[:, 0].reshape(r, h // r)  # omega is per row
-        blocks = (up.reshape(r, h // r, c, w // c) * omega_rows[:, :, None, None]).sum(axis=(1, 3))
-        return blocks.ravel()
+            return np.asarray([float(lum_w.sum())])
+        return lum_w.reshape(r, h // r, c, w // c).sum(axis=(1, 3)).ravel()
 
     def linear_frame(self, frame: Frame, lut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A frame's linear radiance (h, w, 3) float32 through its LUT (x pixel gain) and the
