@@ -67,9 +67,10 @@ def test_the_published_flashlight_follows_within_one_frame(artifacts_dir: Path) 
     """A 600:1 flashlight carried around the probe at 40 degrees a second: the published
     flashlight is where the true one was at most one frame earlier, every frame; its energy is
     kept (a long exposure sees it only saturated). The diffuse error stays within 1% on nine
-    frames in ten and 1.5% on all (1.08% measured: short of 1% on the long-exposure frames,
-    where the lamp is one frame behind); glossy likewise meets 3% in the median only (a glossy
-    lobe is sharp)."""
+    frames in ten and 1.5% on all (1.19% measured: short of 1% on the long-exposure frames,
+    where part of the lamp is one frame behind); glossy meets 3% in the median, and 4.5% on
+    nine frames in ten (3.9% measured; 7.5% before the held energy could reach the lamp's
+    whole leading edge; a glossy lobe is sharp)."""
     res = measure("flashlight", frames=160, every=3)
     _record("flashlight", res, artifacts_dir)
     lags = res["flashlight_lags_frames"]
@@ -79,3 +80,4 @@ def test_the_published_flashlight_follows_within_one_frame(artifacts_dir: Path) 
     assert res["diffuse"]["p90"] <= 0.01, res["diffuse"]
     assert res["diffuse"]["max"] <= 0.015, res["diffuse"]
     assert res["glossy"]["median"] <= 0.03, res["glossy"]
+    assert res["glossy"]["p90"] <= 0.045, res["glossy"]

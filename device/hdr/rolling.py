@@ -430,7 +430,10 @@ class RollingMerge:
     frames: list[int] = field(default_factory=list)  # slot -> frame number of its last update
     resum_every: int = 256
     hold_reach: int = 3  # output pixels around a saturated one where a darkening is held a frame
-    move_reach: int = 6  # output pixels around a held one where its energy may go (0: held in place)
+    # output pixels around a held one where its energy may go (0: held in place): a lamp's disc
+    # plus a frame's motion, so that what the trailing edge lost reaches the whole leading edge
+    # (flashlight, 3 deg disc at 40 deg/s, 256-row map: glossy p90 7.5% with 6, 3.8% with 12)
+    move_reach: int = 12
 
     def __post_init__(self) -> None:
         # slots are allocated as exposures arrive (a bracket often uses fewer than max_slots)
