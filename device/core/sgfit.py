@@ -26,9 +26,15 @@ The paper fixes the structure and leaves the numbers open (``../shared/NOTES.md`
    ``|residual|`` holds less than ``residual_threshold`` of the light, or after the last level.
    Residual amplitudes may be negative (a correction of the coarser level); their sum with the
    coarser lobes is the radiance.
-4. The residual is computed on a 128 x 256 working map (energy-preserving reduction); lobes are
-   evaluated there through sparse float32 matrices truncated where a lobe falls below 1e-3 of its peak,
-   built once per level set.
+4. The residual lives on HEALPix ``nside`` 32 working cells (1.8 deg, 12,288 equal areas; fewer for
+   maps under 128 rows): the map's power (peaks' excess removed) is summed into them exactly, every
+   level's cells are unions of them (nested indexing: a lobe's energy is a contiguous sum), and a
+   level's reconstruction is its lobes evaluated at the working cells' centres through a sparse
+   float32 table truncated where a lobe falls below 1e-3 of its peak (built once per level set,
+   14 MB). Equal areas make the step's weighted norms plain sums. Two compiled passes per level
+   (reconstruction with the step's sums; subtraction with the remainder's norms): 36-64 ms per
+   fit on a 128 x 256 equirect working map before, a few ms now (BENCHMARKS.md), at the same
+   energy, diffuse and glossy errors.
 
 Energy: the peaks' lobes plus the levels' hold the map's integral up to what the last level
 leaves (asserted within 1% on the six shared maps).
@@ -40,11 +46,14 @@ import math
 from functools import lru_cache
 from typing import Any
 
+import numba
 import numpy as np
 
 from device.core.sg import SGLighting, level_sharpness, lobe_integral, sharpness_from_resultant
 from device.core.sphere import (
-    coarse_equirect,
+    LUM_B,
+    LUM_G,
+    LUM_R,
     directions_from_angles,
     equirect_row_solid_angle,
     luminance,
@@ -68,33 +77,122 @@ def _clean(a: np.ndarray) -> np.ndarray:
     return a
 
 
-@lru_cache(maxsize=8)
-def _level_matrices(height: int, levels: tuple[int, ...]) -> tuple[Any, ...]:
-    """Per level: (pixel -> cell index (P,), cell centres (n, 3), sharpness, sparse (P, n) float64
-    matrix of the unit-amplitude lobes at the working pixels)."""
-    from scipy import sparse
+WORK_NSIDE = 32  # the residual lives on HEALPix cells of this nside (equal areas, nested under every level)
 
-    from device.core.healpix import npix, pix2vec_nest, vec2pix_nest
+
+def _work_nside(height: int, levels: tuple[int, ...]) -> int:
+    """The working cells' nside: 32 (1.8 deg), coarser for maps under 128 rows (at least two of
+    the map's pixels per cell), never coarser than the finest level."""
+    n = WORK_NSIDE
+    while n > 1 and n // 2 >= max(levels) and 12 * n * n > height * height:
+        n //= 2
+    return max(n, max(levels))
+
+
+@lru_cache(maxsize=4)
+def _work_cells(height: int, nside: int) -> np.ndarray:
+    """The working cell (nested index) of every pixel centre of an (height, 2 height) map."""
+    from device.core.healpix import vec2pix_nest
 
     d = directions_from_angles(np.pi * (np.arange(height) + 0.5)[:, None] / height,
                                2 * np.pi * (np.arange(2 * height) + 0.5)[None, :] / (2 * height)).reshape(-1, 3)
+    return np.asarray(vec2pix_nest(nside, d), np.int32)
+
+
+@lru_cache(maxsize=4)
+def _level_tables(nside_w: int, levels: tuple[int, ...]) -> tuple[Any, ...]:
+    """Per level: cell centres (n, 3), sharpness, and the unit-amplitude lobes at the working cell
+    centres as a CSR matrix (indptr, indices int32, values float32), truncated where a lobe falls
+    below ``_TRUNCATE`` of its peak."""
+    from device.core.healpix import npix, pix2vec_nest
+
+    d = pix2vec_nest(nside_w, np.arange(npix(nside_w)))
     out = []
     for nside in levels:
-        cells = vec2pix_nest(nside, d)
         centres = pix2vec_nest(nside, np.arange(npix(nside)))
         lam = level_sharpness(nside)
         cut = 1.0 + math.log(_TRUNCATE) / lam  # exp(lam (c - 1)) >= _TRUNCATE
-        rows, cols, vals = [], [], []
+        counts, cols, vals = [], [], []
         for s in range(0, len(d), 2048):
             c = d[s:s + 2048] @ centres.T
-            i, j = np.nonzero(c >= cut)
-            rows.append(i + s)
-            cols.append(j)
-            vals.append(np.exp(lam * (c[i, j] - 1.0)))
-        mat = sparse.csr_matrix((np.concatenate(vals).astype(np.float32), (np.concatenate(rows), np.concatenate(cols))),
-                                shape=(len(d), len(centres)))
-        out.append((cells, centres, lam, mat))
+            i, j = np.nonzero(c >= cut)  # row-major: sorted by working cell
+            counts.append(np.bincount(i, minlength=len(c)))
+            cols.append(j.astype(np.int32))
+            vals.append(np.exp(lam * (c[i, j] - 1.0)).astype(np.float32))
+        indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))]).astype(np.int64)
+        out.append((centres, lam, indptr, np.concatenate(cols), np.concatenate(vals)))
     return tuple(out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_power(a, rows, f, omega_row):  # type: ignore[no-untyped-def]
+    """Luminance x solid angle of the first ``rows`` rows of an (H, W, 3) map summed over f x f
+    blocks: (H / f, W / f) float64."""
+    w = a.shape[1]
+    out = np.zeros((a.shape[0] // f, w // f))
+    for r in range(rows):
+        om = omega_row[r]
+        br = r // f
+        for c in range(w):
+            out[br, c // f] += (LUM_R * a[r, c, 0] + LUM_G * a[r, c, 1] + LUM_B * a[r, c, 2]) * om
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_power(a, omega_row, cells, ncells):  # type: ignore[no-untyped-def]
+    """Radiance x solid angle of an (H, W, 3) map summed per working cell (float64)."""
+    h, w = a.shape[0], a.shape[1]
+    out = np.zeros((ncells, 3))
+    for r in range(h):
+        om = omega_row[r]
+        for c in range(w):
+            k = cells[r * w + c]
+            out[k, 0] += a[r, c, 0] * om
+            out[k, 1] += a[r, c, 1] * om
+            out[k, 2] += a[r, c, 2] * om
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _subtract(resid, recon, step):  # type: ignore[no-untyped-def]
+    """``resid -= step recon`` in place; returns what is left as the sum of its |luminance| and
+    of its squares (``step = 0``: only the sums)."""
+    lum = 0.0
+    sq = 0.0
+    for c in range(resid.shape[0]):  # 12k cells: a thread pool's wake-up costs more
+        r0 = resid[c, 0] - step * recon[c, 0]
+        r1 = resid[c, 1] - step * recon[c, 1]
+        r2 = resid[c, 2] - step * recon[c, 2]
+        resid[c, 0] = r0
+        resid[c, 1] = r1
+        resid[c, 2] = r2
+        lum += abs(LUM_R * r0 + LUM_G * r1 + LUM_B * r2)
+        sq += r0 * r0 + r1 * r1 + r2 * r2
+    return lum, sq
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _reconstruct(indptr, indices, vals, mu, resid, out):  # type: ignore[no-untyped-def]
+    """A level's radiance at the working cells (``out``) from its lobes' amplitudes ``mu``, and
+    the sums ``<resid, out>`` and ``<out, out>`` the step needs (equal cells: no weights)."""
+    num = 0.0
+    den = 0.0
+    for c in numba.prange(out.shape[0]):
+        r0 = 0.0
+        r1 = 0.0
+        r2 = 0.0
+        for q in range(indptr[c], indptr[c + 1]):
+            k = indices[q]
+            v = np.float64(vals[q])
+            r0 += v * mu[k, 0]
+            r1 += v * mu[k, 1]
+            r2 += v * mu[k, 2]
+        out[c, 0] = r0
+        out[c, 1] = r1
+        out[c, 2] = r2
+        num += resid[c, 0] * r0 + resid[c, 1] * r1 + resid[c, 2] * r2
+        den += r0 * r0 + r1 * r1 + r2 * r2
+    return num, den
 
 
 def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, relative: float, contrast: float
@@ -110,12 +208,8 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
     ch = WORK_HEIGHT if h > WORK_HEIGHT and h % WORK_HEIGHT == 0 else h
     f = h // ch
     omega = equirect_row_solid_angle(h, w)
-    lum = luminance(full[:rows])
-    c_pow = np.zeros((ch, 2 * ch))
     crow = -(-rows // f)
-    pad = np.zeros((crow * f, w))
-    pad[:rows] = lum * omega[:rows, None]
-    c_pow[:crow] = pad.reshape(crow, f, 2 * ch, f).sum(axis=(1, 3))
+    c_pow = _block_power(full, rows, f, omega)
     c_omega = equirect_row_solid_angle(ch)
     total = float(c_pow.sum())
     if not total > 0:
@@ -128,12 +222,22 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
     power = np.bincount(labels.ravel(), c_pow.ravel(), n + 1)[1:]
     found = []
     cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+    boxes = ndimage.find_objects(labels)
     for lab in np.argsort(-power)[:max_peaks] + 1:
         if power[lab - 1] < min_fraction * total:
             break
-        comp = labels == lab
-        grown = ndimage.binary_dilation(comp, cross, iterations=1)
-        ring = ndimage.binary_dilation(grown, cross, iterations=2) & ~grown & (labels == 0)
+        # the dilations on the region's box (3 coarse pixels wider), not the whole map
+        rs, cs = boxes[lab - 1]
+        r0, r1 = max(rs.start - 3, 0), min(rs.stop + 3, ch)
+        c0, c1 = (cs.start - 3, cs.stop + 3) if cs.start >= 3 and cs.stop + 3 <= 2 * ch else (0, 2 * ch)
+        sub = labels[r0:r1, c0:c1]
+        comp = sub == lab
+        g_sub = ndimage.binary_dilation(comp, cross, iterations=1)
+        ring_sub = ndimage.binary_dilation(g_sub, cross, iterations=2) & ~g_sub & (sub == 0)
+        grown = np.zeros(labels.shape, bool)
+        ring = np.zeros(labels.shape, bool)
+        grown[r0:r1, c0:c1] = g_sub
+        ring[r0:r1, c0:c1] = ring_sub
         r_idx, c_idx = block_pixels(grown[:crow], f, rows)
         rr, rc = block_pixels(ring[:crow], f, rows)
         if len(r_idx) == 0:
@@ -224,46 +328,49 @@ def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, re
     full = np.array(_clean(a), copy=True)
     if rows is None:
         rows = h // 2 if not full[h // 2:].any() else h
-    axes, lams, amps, kinds = [], [], [], []
+    axes: list[np.ndarray] = []  # per peak lobe, then per level: (n, 3) axes, (n,) sharpness, (n, 3) amplitudes
+    lams: list[np.ndarray] = []
+    amps: list[np.ndarray] = []
+    kinds: list[str] = []
     peaks, total = _peaks(full, rows, max_peaks, min_peak_fraction, peak_relative, peak_contrast)
     for dirs, pw, lp in peaks:
         for part in _split(dirs, pw, lp, max_peak_lobes):
             ax, lam, mu = _lobe(*part)
-            axes.append(ax)
-            lams.append(lam)
-            amps.append(mu)
+            axes.append(ax[None])
+            lams.append(np.array([lam]))
+            amps.append(mu[None])
             kinds.append("peak")
-    hw = min(WORK_HEIGHT, h)
-    work = coarse_equirect(full, hw).astype(np.float64)  # (hw, 2hw, 3) radiance, the peaks' excess removed
-    om = np.repeat(equirect_row_solid_angle(hw), 2 * hw)
-    resid = work.reshape(-1, 3)
-    total_lum = max(total, float(luminance(resid).dot(om)), 1e-300)
-    l2_ref = math.sqrt(max(float(np.sum(om[:, None] * resid * resid)), 1e-300))
-
-    def l2(r: np.ndarray) -> float:
-        return math.sqrt(float(np.sum(om[:, None] * r * r))) / l2_ref
-
+    levels = tuple(int(n) for n in levels)
+    nside_w = _work_nside(h, levels)
+    ncells = 12 * nside_w * nside_w
+    cell_omega = 4.0 * math.pi / ncells
+    # the map without the peaks' excess, as mean radiance per working cell (energy kept exactly)
+    resid = _cell_power(full, equirect_row_solid_angle(h), _work_cells(h, nside_w), ncells) / cell_omega
+    rem_lum, sq = _subtract(resid, resid, 0.0)  # |luminance| and squares of what is left
+    total_lum = max(total, float(luminance(resid).sum()) * cell_omega, 1e-300)
+    l2_ref = math.sqrt(max(sq, 1e-300))
     info = []
-    for nside, (cells, centres, lam, mat) in zip(levels, _level_matrices(hw, tuple(levels)), strict=True):
-        rem = float(np.abs(luminance(resid)).dot(om)) / total_lum
+    recon = np.empty_like(resid)
+    for nside, (centres, lam, indptr, indices, vals) in zip(levels, _level_tables(nside_w, levels), strict=True):
+        rem = rem_lum * cell_omega / total_lum
         if rem < residual_threshold:
             break
-        cell_e = np.stack([np.bincount(cells, resid[:, c] * om, len(centres)) for c in range(3)], 1)
-        mu = cell_e / float(lobe_integral(np.array(lam)))
-        recon = (mat @ mu.astype(np.float32)).astype(np.float64)  # (P, 3) the level's radiance at the working pixels
-        num = float(np.sum(om[:, None] * resid * recon))
-        den = float(np.sum(om[:, None] * recon * recon))
+        # each lobe carries its cell's residual energy (nested cells: contiguous working cells)
+        mu = resid.reshape(len(centres), -1, 3).sum(axis=1) * (cell_omega / float(lobe_integral(np.array(lam))))
+        num, den = _reconstruct(indptr, indices, vals, mu, resid, recon)
         step = min(1.0, max(0.0, num / den)) if den > 0 else 0.0
         if step <= 0:
             info.append({"nside": int(nside), "lobes": 0, "sharpness": lam, "step": 0.0, "residual": rem,
-                         "residual_l2": l2(resid)})
+                         "residual_l2": math.sqrt(sq) / l2_ref})
             continue
-        resid = resid - step * recon
-        keep = np.abs(mu).max(axis=1) > 0
-        axes.extend(centres[keep])
-        lams.extend([lam] * int(keep.sum()))
-        amps.extend(step * mu[keep])
-        kinds.extend(["residual"] * int(keep.sum()))
-        info.append({"nside": int(nside), "lobes": int(keep.sum()), "sharpness": lam, "step": step,
-                     "residual": float(np.abs(luminance(resid)).dot(om)) / total_lum, "residual_l2": l2(resid)})
-    return SGLighting(np.array(axes).reshape(-1, 3), np.array(lams), np.array(amps).reshape(-1, 3), kinds, info, **meta)
+        rem_lum, sq = _subtract(resid, recon, step)
+        keep = np.flatnonzero(mu.any(axis=1))
+        axes.append(centres[keep])
+        lams.append(np.full(len(keep), lam))
+        amps.append(step * mu[keep])
+        kinds.extend(["residual"] * len(keep))
+        info.append({"nside": int(nside), "lobes": len(keep), "sharpness": lam, "step": step,
+                     "residual": rem_lum * cell_omega / total_lum, "residual_l2": math.sqrt(sq) / l2_ref})
+    if not axes:
+        return SGLighting(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), kinds, info, **meta)
+    return SGLighting(np.concatenate(axes), np.concatenate(lams), np.concatenate(amps), kinds, info, **meta)
