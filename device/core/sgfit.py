@@ -33,7 +33,7 @@ The paper fixes the structure and leaves the numbers open (``../shared/NOTES.md`
    float32 table truncated where a lobe falls below 1e-3 of its peak (built once per level set,
    14 MB). Equal areas make the step's weighted norms plain sums. Two compiled passes per level
    (reconstruction with the step's sums; subtraction with the remainder's norms): 36-64 ms per
-   fit on a 128 x 256 equirect working map before, a few ms now (BENCHMARKS.md), at the same
+   fit on a 128 x 256 equirect working map before, 3.6-10.7 ms now (BENCHMARKS.md), at the same
    energy, diffuse and glossy errors.
 
 Energy: the peaks' lobes plus the levels' hold the map's integral up to what the last level
