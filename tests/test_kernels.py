@@ -160,3 +160,33 @@ print(before, done, after, f(np.ones(3)), g(np.arange(4.0)))
     assert int(before) > 10_000, out.stdout  # > 10 MB of LLVM resident after one compile
     assert int(after) < int(before) / 4, out.stdout
     assert (float(f3), float(g4)) == (6.0, 4.0)
+
+
+def test_skip_numba_blas_probe_keeps_scipy_linalg_out_and_numba_whole() -> None:
+    """The service's numba loads without scipy.linalg (16 MB); a service kernel from the cache, a
+    jitted np.convolve (the probe's one user, now a loop) and a jitted np.dot (BLAS bound when it
+    compiles) still give NumPy's results, and scipy.linalg still imports afterwards."""
+    code = """
+import sys
+import numpy as np
+from device.core import memory
+assert memory.skip_numba_blas_probe() is True
+from device.core.sphere import equirect_directions
+from device.core.sgfit import _cell_power
+a = np.random.default_rng(1).random((8, 16, 3)).astype(np.float32)
+p = _cell_power(a, np.ones(8), np.zeros(128, np.int32), 1)
+assert np.allclose(p[0], a.reshape(-1, 3).sum(axis=0), rtol=1e-6)
+import numba
+conv = numba.njit(lambda x, y: np.convolve(x, y))
+x, y = np.arange(5.0), np.array([1.0, -2.0, 0.5])
+assert np.allclose(conv(x, y), np.convolve(x, y))
+print("linalg_before_dot", "scipy.linalg" in sys.modules)
+dot = numba.njit(lambda x, y: np.dot(x, y))
+assert dot(np.arange(3.0), np.arange(3.0)) == 5.0
+import scipy.linalg
+assert scipy.linalg.norm([3.0, 4.0]) == 5.0
+assert memory.skip_numba_blas_probe() is False
+"""
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert "linalg_before_dot False" in out.stdout, out.stdout

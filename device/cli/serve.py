@@ -270,9 +270,10 @@ def main(argv: list[str]) -> int:
 
         seed_cache(os.environ["NUMBA_CACHE_DIR"])
     single_blas_thread(os.environ)  # before numpy loads OpenBLAS
-    from device.core.memory import tune_allocator
+    from device.core.memory import skip_numba_blas_probe, tune_allocator
 
     tune_allocator()  # before any thread starts: a small board's memory
+    skip_numba_blas_probe()  # scipy.linalg stays out of the service (16 MB)
     if a.port is not None and not 0 <= a.port <= 65535:
         print(f"lightprobe: error: --port must be in [0, 65535], got {a.port}", file=sys.stderr)
         return 2
