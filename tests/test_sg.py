@@ -23,6 +23,7 @@ from device.core.sphere import (
     equirect_directions,
     equirect_integral,
     equirect_row_solid_angle,
+    luminance,
 )
 from device.sampling.metrics import ErrorReference
 
@@ -69,6 +70,54 @@ def test_closed_forms_against_quadrature() -> None:
     lam = np.array([0.1, 1.0, 10.0, 1e3, 1e5])
     r = 1 / np.tanh(lam) - 1 / lam
     assert np.allclose(sharpness_from_resultant(r), lam, rtol=1e-6)
+    # one lobe at a time (the peaks' path) gives the same; a nearly uniform lobe is 3 r, not NaN
+    for la, rr in zip(lam, r, strict=True):
+        assert abs(float(sharpness_from_resultant(np.float64(rr))) / la - 1) < 1e-6
+    tiny = np.array([1e-7, 1e-5, 9e-4])
+    for got in (sharpness_from_resultant(tiny), [sharpness_from_resultant(np.float64(t)) for t in tiny]):
+        assert np.allclose(got, 3 * tiny, rtol=1e-5)
+
+
+def test_region_excess_equals_the_dilation_reference() -> None:
+    """The compiled per-peak pass is the grown region (one cross dilation) giving up its excess
+    over the median of the ring (two more, unlabelled pixels only), read at full resolution in
+    row-major block order: against the same steps with scipy.ndimage, for regions in the open,
+    touching each other's rings, at the map's border and cut by ``rows``."""
+    from scipy import ndimage
+
+    from device.core.components import block_pixels
+    from device.core.sgfit import _region_excess
+
+    rng = np.random.default_rng(5)
+    ch, f = 16, 2
+    full0 = rng.random((ch * f, 2 * ch * f, 3)).astype(np.float32)
+    labels = np.zeros((ch, 2 * ch), np.int64)
+    labels[3:6, 4:7] = 1
+    labels[7:9, 6:8] = 2  # two pixels from region 1: in its ring, so not background
+    labels[0:2, 28:32] = 3  # at the top and right border
+    labels[12:16, 10:12] = 4  # cut by rows
+    full0[labels.repeat(f, 0).repeat(f, 1) > 0] *= 40
+    rows = 27
+    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+    for lab, (r0, r1, c0, c1) in ((1, (0, 9, 1, 10)), (2, (4, 12, 3, 11)), (3, (0, 5, 25, 32)), (4, (9, 16, 7, 15))):
+        ref, got = full0.copy(), full0.copy()
+        sub = labels[r0:r1, c0:c1]
+        g = ndimage.binary_dilation(sub == lab, cross)
+        ring = ndimage.binary_dilation(g, cross, iterations=2) & ~g & (sub == 0)
+        grown_m, ring_m = np.zeros(labels.shape, bool), np.zeros(labels.shape, bool)
+        grown_m[r0:r1, c0:c1], ring_m[r0:r1, c0:c1] = g, ring
+        ri, ci = block_pixels(grown_m, f, rows)
+        rr, rc = block_pixels(ring_m, f, rows)
+        bg = np.median(ref[rr, rc], axis=0)
+        ex = np.maximum(ref[ri, ci].astype(np.float64) - bg[None, :], 0.0)
+        keep = luminance(ex) > 0
+        ri, ci, ex = ri[keep], ci[keep], ex[keep]
+        ref[ri, ci] = np.maximum(ref[ri, ci] - ex.astype(np.float32), 0.0)
+        r_idx, c_idx, excess = _region_excess(got, labels, lab, r0, r1, c0, c1, f, rows)
+        assert len(r_idx) > 0 and (lab != 4 or r_idx.max() < rows)
+        assert np.array_equal(r_idx, ri) and np.array_equal(c_idx, ci)
+        assert np.allclose(excess, ex, rtol=1e-6, atol=1e-6)
+        assert np.array_equal(got, ref)
 
 
 # ---- the fit on the shared maps ----------------------------------------------------------------

@@ -32,9 +32,12 @@ The paper fixes the structure and leaves the numbers open (``../shared/NOTES.md`
    level's reconstruction is its lobes evaluated at the working cells' centres through a sparse
    float32 table truncated where a lobe falls below 1e-3 of its peak (built once per level set,
    14 MB). Equal areas make the step's weighted norms plain sums. Two compiled passes per level
-   (reconstruction with the step's sums; subtraction with the remainder's norms): 36-64 ms per
-   fit on a 128 x 256 equirect working map before, 3.6-10.7 ms now (BENCHMARKS.md), at the same
-   energy, diffuse and glossy errors.
+   (reconstruction with the step's sums; subtraction with the remainder's norms), and one for a
+   level's lobe energies (the contiguous sums). Each peak's growth, ring, background median and
+   excess is one compiled pass over the region's box (:func:`_region_excess`; it was a dozen
+   NumPy / ndimage calls of 0.1-0.3 ms each per peak). 36-64 ms per fit on a 128 x 256 equirect
+   working map at first, 2.4-4.0 ms now on 256 x 512 (BENCHMARKS.md), at the same energy,
+   diffuse and glossy errors.
 
 Energy: the peaks' lobes plus the levels' hold the map's integral up to what the last level
 leaves (asserted within 1% on the six shared maps).
@@ -71,7 +74,8 @@ _TRUNCATE = 1e-3
 
 
 def _clean(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a, np.float32)
+    """A float32 copy of an (H, W, 3) map with NaN, infinite and negative values as 0."""
+    a = np.array(a, np.float32, order="C", copy=True)
     mn, mx = float(a.min(initial=0.0)), float(a.max(initial=0.0))
     if not (np.isfinite(mn) and np.isfinite(mx) and mn >= 0):
         a = np.where(np.isfinite(a) & (a > 0), a, np.float32(0))
@@ -153,6 +157,27 @@ def _cell_power(a, omega_row, cells, ncells):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, nogil=True)
+def _group_sums(resid, n, scale):  # type: ignore[no-untyped-def]
+    """``scale`` x the sums of ``n`` equal runs of consecutive rows of ``resid`` (cells, 3): a
+    level's lobes from their nested working cells (numpy's strided ``reshape(n, -1, 3).sum(1)``
+    took 0.1-0.2 ms a level)."""
+    g = resid.shape[0] // n
+    out = np.zeros((n, 3))
+    for k in range(n):
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        for c in range(k * g, (k + 1) * g):
+            s0 += resid[c, 0]
+            s1 += resid[c, 1]
+            s2 += resid[c, 2]
+        out[k, 0] = s0 * scale
+        out[k, 1] = s1 * scale
+        out[k, 2] = s2 * scale
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def _subtract(resid, recon, step):  # type: ignore[no-untyped-def]
     """``resid -= step recon`` in place; returns what is left as the sum of its |luminance| and
     of its squares (``step = 0``: only the sums)."""
@@ -198,6 +223,89 @@ def _reconstruct(indptr, indices, vals, mu, resid, out):  # type: ignore[no-unty
     return num, den
 
 
+@numba.njit(cache=True, nogil=True)
+def _region_excess(full, labels, lab, r0, r1, c0, c1, f, rows):  # type: ignore[no-untyped-def]
+    """One peak's excess, taken out of ``full`` (H, W, 3) in place: the region ``lab`` of the
+    coarse ``labels`` grown by one coarse pixel (4-neighbours), within its box ``[r0, r1) x
+    [c0, c1)``, gives up at full resolution (f x f blocks, rows below ``rows``) its radiance above
+    the per-channel median of a ring two coarse pixels wide around it (unlabelled pixels only).
+    Returns the rows, columns and excess (float64) of the pixels with a positive luminance excess,
+    in row-major block order."""
+    bh, bw = r1 - r0, c1 - c0
+    grown = np.zeros((bh, bw), np.bool_)
+    for i in range(bh):
+        for j in range(bw):
+            if labels[r0 + i, c0 + j] == lab:
+                grown[i, j] = True
+                if i > 0:
+                    grown[i - 1, j] = True
+                if i + 1 < bh:
+                    grown[i + 1, j] = True
+                if j > 0:
+                    grown[i, j - 1] = True
+                if j + 1 < bw:
+                    grown[i, j + 1] = True
+    # the ring: two more 4-neighbour dilations (a diamond of radius 2), minus the grown region
+    dist = np.full((bh, bw), 3, np.int64)
+    for i in range(bh):
+        for j in range(bw):
+            if grown[i, j]:
+                for di in range(-2, 3):
+                    for dj in range(abs(di) - 2, 3 - abs(di)):
+                        ii, jj = i + di, j + dj
+                        if 0 <= ii < bh and 0 <= jj < bw:
+                            dist[ii, jj] = min(dist[ii, jj], abs(di) + abs(dj))
+    n_ring = 0
+    n_grown = 0
+    for i in range(bh):
+        for j in range(bw):
+            rows_here = min(f, max(rows - (r0 + i) * f, 0))
+            if grown[i, j]:
+                n_grown += rows_here * f
+            elif dist[i, j] <= 2 and labels[r0 + i, c0 + j] == 0:
+                n_ring += rows_here * f
+    bg = np.zeros(3)
+    if n_ring > 0:
+        vals = np.empty((3, n_ring), np.float32)
+        k = 0
+        for i in range(bh):
+            for j in range(bw):
+                if grown[i, j] or dist[i, j] > 2 or labels[r0 + i, c0 + j] != 0:
+                    continue
+                for a in range((r0 + i) * f, min((r0 + i + 1) * f, rows)):
+                    for b in range((c0 + j) * f, (c0 + j + 1) * f):
+                        for ch in range(3):
+                            vals[ch, k] = full[a, b, ch]
+                        k += 1
+        for ch in range(3):
+            bg[ch] = np.median(vals[ch])
+    r_out = np.empty(n_grown, np.int64)
+    c_out = np.empty(n_grown, np.int64)
+    ex_out = np.empty((n_grown, 3))
+    k = 0
+    for i in range(bh):
+        for j in range(bw):
+            if not grown[i, j]:
+                continue
+            for a in range((r0 + i) * f, min((r0 + i + 1) * f, rows)):
+                for b in range((c0 + j) * f, (c0 + j + 1) * f):
+                    e0 = max(np.float64(full[a, b, 0]) - bg[0], 0.0)
+                    e1 = max(np.float64(full[a, b, 1]) - bg[1], 0.0)
+                    e2 = max(np.float64(full[a, b, 2]) - bg[2], 0.0)
+                    if LUM_R * e0 + LUM_G * e1 + LUM_B * e2 <= 0:
+                        continue
+                    full[a, b, 0] = max(full[a, b, 0] - np.float32(e0), np.float32(0))
+                    full[a, b, 1] = max(full[a, b, 1] - np.float32(e1), np.float32(0))
+                    full[a, b, 2] = max(full[a, b, 2] - np.float32(e2), np.float32(0))
+                    r_out[k] = a
+                    c_out[k] = b
+                    ex_out[k, 0] = e0
+                    ex_out[k, 1] = e1
+                    ex_out[k, 2] = e2
+                    k += 1
+    return r_out[:k], c_out[:k], ex_out[:k]
+
+
 def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, relative: float, contrast: float
            ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], float]:
     """The peaks' excess pixels: a list of (directions (k, 3), power (k, 3), luminance power (k,))
@@ -205,13 +313,12 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
     luminance integral."""
     from scipy import ndimage
 
-    from device.core.components import block_pixels, peak_threshold, sphere_labels
+    from device.core.components import peak_threshold, sphere_labels
 
     h, w = full.shape[:2]
     ch = WORK_HEIGHT if h > WORK_HEIGHT and h % WORK_HEIGHT == 0 else h
     f = h // ch
     omega = equirect_row_solid_angle(h, w)
-    crow = -(-rows // f)
     c_pow = _block_power(full, rows, f, omega)
     c_omega = equirect_row_solid_angle(ch)
     total = float(c_pow.sum())
@@ -224,39 +331,19 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
         return [], total
     power = np.bincount(labels.ravel(), c_pow.ravel(), n + 1)[1:]
     found = []
-    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
     boxes = ndimage.find_objects(labels)
     for lab in np.argsort(-power)[:max_peaks] + 1:
         if power[lab - 1] < min_fraction * total:
             break
-        # the dilations on the region's box (3 coarse pixels wider), not the whole map
+        # the region's box, 3 coarse pixels wider (the growth and the ring; no wrap, as before)
         rs, cs = boxes[lab - 1]
         r0, r1 = max(rs.start - 3, 0), min(rs.stop + 3, ch)
         c0, c1 = (cs.start - 3, cs.stop + 3) if cs.start >= 3 and cs.stop + 3 <= 2 * ch else (0, 2 * ch)
-        sub = labels[r0:r1, c0:c1]
-        comp = sub == lab
-        g_sub = ndimage.binary_dilation(comp, cross, iterations=1)
-        ring_sub = ndimage.binary_dilation(g_sub, cross, iterations=2) & ~g_sub & (sub == 0)
-        grown = np.zeros(labels.shape, bool)
-        ring = np.zeros(labels.shape, bool)
-        grown[r0:r1, c0:c1] = g_sub
-        ring[r0:r1, c0:c1] = ring_sub
-        r_idx, c_idx = block_pixels(grown[:crow], f, rows)
-        rr, rc = block_pixels(ring[:crow], f, rows)
+        r_idx, c_idx, excess = _region_excess(full, labels, int(lab), r0, r1, c0, c1, f, rows)
         if len(r_idx) == 0:
             continue
-        # the local background: the median of a ring around the region (per channel)
-        bg = np.median(full[rr, rc], axis=0) if len(rr) else np.zeros(3, np.float32)
-        px = full[r_idx, c_idx].astype(np.float64)
-        excess = np.maximum(px - bg[None, :], 0.0)
-        keep = luminance(excess) > 0
-        if not keep.any():
-            continue
-        r_idx, c_idx, excess = r_idx[keep], c_idx[keep], excess[keep]
-        full[r_idx, c_idx] = np.maximum(full[r_idx, c_idx] - excess.astype(np.float32), 0.0)
-        om = omega[r_idx]
         dirs = directions_from_angles(np.pi * (r_idx + 0.5) / h, 2 * np.pi * (c_idx + 0.5) / w)
-        pw = excess * om[:, None]
+        pw = excess * omega[r_idx][:, None]
         found.append((dirs, pw, luminance(pw)))
     return found, total
 
@@ -328,7 +415,7 @@ def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, re
         raise InputError(f"expected an (H, 2H, 3) equirect map with H a multiple of {WORK_HEIGHT}, got shape {a.shape}",
                          param="equirect")
     h = a.shape[0]
-    full = np.array(_clean(a), copy=True)
+    full = _clean(a)
     if rows is None:
         rows = h // 2 if not full[h // 2:].any() else h
     axes: list[np.ndarray] = []  # per peak lobe, then per level: (n, 3) axes, (n,) sharpness, (n, 3) amplitudes
@@ -359,7 +446,7 @@ def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, re
         if rem < residual_threshold:
             break
         # each lobe carries its cell's residual energy (nested cells: contiguous working cells)
-        mu = resid.reshape(len(centres), -1, 3).sum(axis=1) * (cell_omega / float(lobe_integral(np.array(lam))))
+        mu = _group_sums(resid, len(centres), cell_omega / float(lobe_integral(np.array(lam))))
         num, den = _reconstruct(indptr, indices, vals, mu, resid, recon)
         step = min(1.0, max(0.0, num / den)) if den > 0 else 0.0
         if step <= 0:
