@@ -66,18 +66,14 @@ def test_a_switched_lamp_is_in_the_published_lights_within_two_frames(artifacts_
 def test_the_published_flashlight_follows_within_one_frame(artifacts_dir: Path) -> None:
     """A 600:1 flashlight carried around the probe at 40 degrees a second: the published
     flashlight is where the true one was at most one frame earlier, every frame; its energy is
-    kept (a long exposure sees it only saturated). The diffuse error stays within 1% on nine
-    frames in ten and 1.5% on all (1.19% measured: short of 1% on the long-exposure frames,
-    where part of the lamp is one frame behind); glossy meets 3% in the median, and 4.5% on
-    nine frames in ten (3.9% measured; 7.5% before the held energy could reach the lamp's
-    whole leading edge; a glossy lobe is sharp)."""
-    res = measure("flashlight", frames=160, every=3)
+    kept (a long exposure sees it only saturated: the lamp tracker draws it where its measured
+    velocity puts it, ``device.hdr.tracking``). Diffuse within 1% and glossy within 3% on every
+    scored frame (every frame of 160: 0.63% / 2.81% max; without the tracker 1.19% / 11.6%)."""
+    res = measure("flashlight", frames=160, every=2)
     _record("flashlight", res, artifacts_dir)
     lags = res["flashlight_lags_frames"]
     assert None not in lags, lags
     assert max(lags) <= 1, lags
     assert res["sets_per_sensor_s"] >= 25, res
-    assert res["diffuse"]["p90"] <= 0.01, res["diffuse"]
-    assert res["diffuse"]["max"] <= 0.015, res["diffuse"]
-    assert res["glossy"]["median"] <= 0.03, res["glossy"]
-    assert res["glossy"]["p90"] <= 0.045, res["glossy"]
+    assert res["diffuse"]["max"] <= 0.01, res["diffuse"]
+    assert res["glossy"]["max"] <= 0.03, res["glossy"]

@@ -38,7 +38,9 @@ back, the share the exposure could not have measured (:func:`_hold_moving`), and
 saturated pixels nearby that no exposure measures, where the lamp went (:func:`_place_held`),
 or, if there are none, left where it was: the lamp keeps its energy, and the next short
 exposure (the schedule puts one every other frame) measures it where it is. A lamp switched off
-leaves nothing saturated nearby and is gone in the frame that shows it.
+leaves nothing saturated nearby and is gone in the frame that shows it. That is the fallback: a
+lamp measured on two frames is carried at its velocity by :mod:`device.hdr.tracking` (drawn where
+it is on the frames that see it only saturated), which takes back what the hold placed near it.
 
 Cost per frame: one pass over the table's non-zeros of the upper hemisphere (~470k at VGA ->
 256 x 512) and one over the output pixels; no full-resolution image is written. The pass has no
@@ -57,6 +59,7 @@ import numba
 import numpy as np
 
 from device.core.sphere import LUM_B, LUM_G, LUM_R
+from device.hdr.tracking import LampTracker
 
 # Floating-point contraction (FMA), reciprocal division and signless zeros for the per-frame
 # passes (10% of their time); never the flags that assume no inf or NaN, which they test for.
@@ -352,10 +355,15 @@ def _hold_moving(rel, sat_val, mean_gain, satnow, prev, out, held, amount, width
 @numba.njit(cache=True, nogil=True)
 def _place_held(held, amount, bounded, satnow, out, width, reach):  # type: ignore[no-untyped-def]
     """Put what :func:`_hold_moving` kept back into the map: shared among the pixels nearby that
-    the frame sees saturated and no exposure measures (where the lamp went), else in place."""
+    the frame sees saturated and no exposure measures (where the lamp went), else in place.
+    Returns where it went: the pixels and the amounts added (a lamp the tracker draws takes its
+    held energy back, :mod:`device.hdr.tracking`)."""
     npx = out.shape[0]
     rows = npx // width
-    for j in np.flatnonzero(held):
+    src = np.flatnonzero(held)
+    counts = np.zeros(len(src), np.int64)
+    for q in range(len(src)):
+        j = src[q]
         r, c = j // width, j % width
         n = 0
         if reach > 0:
@@ -367,10 +375,24 @@ def _place_held(held, amount, bounded, satnow, out, width, reach):  # type: igno
                     k = rr * width + (c + dc) % width
                     if bounded[k] and satnow[k]:
                         n += 1
+        counts[q] = n
+    total = 0
+    for q in range(len(src)):
+        total += max(counts[q], 1)
+    dest = np.empty(total, np.int64)
+    added = np.empty((total, 3), np.float32)
+    e = 0
+    for q in range(len(src)):
+        j = src[q]
+        n = counts[q]
         if n == 0:
             for ch in range(3):
                 out[j, ch] += amount[j, ch]
+                added[e, ch] = amount[j, ch]
+            dest[e] = j
+            e += 1
             continue
+        r, c = j // width, j % width
         for dr in range(-reach, reach + 1):
             rr = r + dr
             if rr < 0 or rr >= rows:
@@ -379,7 +401,12 @@ def _place_held(held, amount, bounded, satnow, out, width, reach):  # type: igno
                 k = rr * width + (c + dc) % width
                 if bounded[k] and satnow[k]:
                     for ch in range(3):
-                        out[k, ch] += amount[j, ch] / n
+                        v = amount[j, ch] / n
+                        out[k, ch] += v
+                        added[e, ch] = v
+                    dest[e] = k
+                    e += 1
+    return dest, added
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -434,6 +461,7 @@ class RollingMerge:
     # plus a frame's motion, so that what the trailing edge lost reaches the whole leading edge
     # (flashlight, 3 deg disc at 40 deg/s, 256-row map: glossy p90 7.5% with 6, 3.8% with 12)
     move_reach: int = 12
+    track: bool = True  # carry measured lamps at their velocity through censored frames (tracking.py)
 
     def __post_init__(self) -> None:
         # slots are allocated as exposures arrive (a bracket often uses fewer than max_slots)
@@ -450,6 +478,7 @@ class RollingMerge:
         self.held = np.zeros(self.pixels, np.bool_)
         self.amount = np.zeros((self.pixels, 3), np.float32)
         self._updates = 0
+        self.tracker = LampTracker(self.width) if self.track and self.width > 0 else None
         self._sum_luts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _sum_lut(self, lut: np.ndarray, dark_val: np.ndarray) -> np.ndarray:
@@ -512,8 +541,12 @@ class RollingMerge:
         if self.width > 0 and self.hold_reach > 0:
             _hold_moving(float(self.rel_tol), np.asarray(bounds[1], np.float64), mean_gain, self.satnow,
                          self.prev, self.fused, self.held, self.amount, self.width, self.hold_reach)
-            _place_held(self.held, self.amount, self.bounded, self.satnow, self.fused, self.width,
-                        self.move_reach)
+            placed = _place_held(self.held, self.amount, self.bounded, self.satnow, self.fused, self.width,
+                                 self.move_reach)
+        else:
+            placed = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
+        if self.tracker is not None:
+            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach)
         self.prev[:] = self.fused
         return self.fused
 
@@ -523,3 +556,5 @@ class RollingMerge:
         for a in (self.m, self.p, self.num, self.den, self.bound, self.fused):
             a[:] = 0.0
         self.held[:] = False
+        if self.tracker is not None:
+            self.tracker.reset()

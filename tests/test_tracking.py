@@ -1,0 +1,113 @@
+"""The lamp tracker (``device.hdr.tracking``): a lamp measured on two frames is drawn where its
+velocity puts it on a censored frame, with its energy; a static or switched-off lamp is left to
+the merge; what the merge's hold placed near a drawn lamp is taken back."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from device.core.sphere import luminance
+from device.hdr.tracking import LampTracker
+
+ROWS, WIDTH = 32, 64
+BG = 1.0
+
+
+def _lamp_map(col: float | None, peak: float = 100.0) -> np.ndarray:
+    """A Gaussian lamp (sigma 0.8 px) at row 12, column ``col`` on a flat background."""
+    f = np.full((ROWS, WIDTH, 3), BG, np.float32)
+    if col is not None:
+        r, c = np.mgrid[0:ROWS, 0:WIDTH]
+        f += (peak * np.exp(-((r - 12.0) ** 2 + (c - col) ** 2) / (2 * 0.8**2)))[..., None].astype(np.float32)
+    return f
+
+
+def _energy_above_bg(f: np.ndarray) -> float:
+    return float(luminance(f.astype(np.float64) - BG).sum())
+
+
+def _centroid_col(f: np.ndarray) -> float:
+    w = np.maximum(luminance(f.astype(np.float64) - BG), 0.0)
+    return float((w.sum(axis=0) * np.arange(WIDTH)).sum() / w.sum())
+
+
+def _censored(old_col: float, new_col: float, bound: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """What a long exposure leaves in the merged map: the truth where it measures, and where it
+    is saturated (where the lamp is and where its halo still was) the old lamp the merge holds,
+    or only the lower bound where the old lamp was below it."""
+    f = _lamp_map(new_col)
+    old = _lamp_map(old_col)
+    sat = np.zeros((ROWS, WIDTH), bool)
+    for col in (old_col, new_col):
+        sat[10:15, int(col) - 2:int(col) + 3] = True
+    f[sat] = np.maximum(old[sat], bound)
+    return f, sat
+
+
+def _measured(t: LampTracker, cols: list[float | None]) -> None:
+    """A long frame that saturates the lamp (the schedule's), then frames that measure it."""
+    first = cols[0] if cols[0] is not None else 20.0
+    f, sat = _censored(first, first)
+    t.update(-1, f.reshape(-1, 3), sat.reshape(-1))
+    for k, col in enumerate(cols):
+        t.update(k, _lamp_map(col).reshape(-1, 3), np.zeros(ROWS * WIDTH, bool))
+
+
+def _run(cols: list[float | None], censored_to: float | None, tracker: LampTracker | None = None,
+         placed: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    t = tracker or LampTracker(WIDTH)
+    _measured(t, cols)
+    last = cols[-1]
+    assert last is not None
+    f, sat = _censored(last, censored_to if censored_to is not None else last)
+    before = f.copy()
+    flat = f.reshape(-1, 3)
+    drawn = t.update(len(cols), flat, sat.reshape(-1), placed, 4)
+    return before, f, drawn
+
+
+def test_a_moving_lamp_is_drawn_where_its_velocity_puts_it_with_its_energy() -> None:
+    energy = _energy_above_bg(_lamp_map(30.0))
+    before, after, drawn = _run([26.0, 28.0], censored_to=30.0)
+    assert drawn == 1
+    # the merge alone would publish the lamp where it was, and the lower bound where it went
+    assert abs(_centroid_col(before) - 28.0) < 0.6
+    assert abs(_centroid_col(after) - 30.0) < 0.25
+    assert abs(_energy_above_bg(after) / energy - 1) < 0.01
+    # the old place is background again
+    assert np.allclose(after[12, 25:27], BG, atol=1e-2)
+
+
+def test_a_lamp_no_exposure_saturates_is_left_to_the_merge() -> None:
+    """A bright region no frame has saturated lately is measured every frame: not tracked."""
+    t = LampTracker(WIDTH)
+    for k, col in enumerate([26.0, 28.0]):
+        t.update(k, _lamp_map(col).reshape(-1, 3), np.zeros(ROWS * WIDTH, bool))
+    assert t.tracks == []
+
+
+def test_a_static_or_switched_off_lamp_is_left_to_the_merge() -> None:
+    before, after, drawn = _run([28.0, 28.0], censored_to=None)
+    assert drawn == 0
+    assert np.array_equal(before, after)
+    t = LampTracker(WIDTH)
+    _measured(t, [26.0, 28.0])
+    off = _lamp_map(None)  # switched off: nothing saturated, nothing drawn
+    assert t.update(2, off.reshape(-1, 3), np.zeros(ROWS * WIDTH, bool)) == 0
+    assert np.array_equal(off, _lamp_map(None))
+
+
+def test_what_the_hold_placed_near_a_drawn_lamp_is_taken_back() -> None:
+    energy = _energy_above_bg(_lamp_map(30.0))
+    near, far = 12 * WIDTH + 33, 25 * WIDTH + 5  # 3 px from the lamp; far from it
+    extra = np.array([[7.0, 7.0, 7.0], [2.0, 2.0, 2.0]], np.float32)
+    placed = (np.array([near, far], np.int64), extra)
+    t = LampTracker(WIDTH)
+    _measured(t, [26.0, 28.0])
+    f, sat = _censored(28.0, 30.0)
+    flat = f.reshape(-1, 3)
+    flat[[near, far]] += extra  # as _place_held added them
+    assert t.update(2, flat, sat.reshape(-1), placed, 4) == 1
+    assert np.allclose(f[25, 5], BG + 2.0)  # not near the lamp: kept
+    got = _energy_above_bg(f) - float(luminance(np.float64(2.0) * np.ones(3)))
+    assert abs(got / energy - 1) < 0.01  # the near placement is not counted twice
