@@ -68,8 +68,9 @@ def test_the_published_flashlight_follows_within_one_frame(artifacts_dir: Path) 
     flashlight is where the true one was at most one frame earlier, every frame; its energy is
     kept (a long exposure sees it only saturated: the lamp tracker draws it where its measured
     velocity puts it, ``device.hdr.tracking``). Diffuse within 1% and glossy within 3% on every
-    scored frame (every frame of 160: 0.63% / 2.81% max; without the tracker 1.19% / 11.6%)."""
-    res = measure("flashlight", frames=160, every=2)
+    scored frame, the lamp's crossing of the map's 0 / 2 pi seam (frames 230-245) included
+    (every frame of 300: 0.80% / 2.81% max; without the tracker 1.19% / 11.6% over 160)."""
+    res = measure("flashlight", frames=260, every=2)
     _record("flashlight", res, artifacts_dir)
     lags = res["flashlight_lags_frames"]
     assert None not in lags, lags

@@ -111,3 +111,26 @@ def test_what_the_hold_placed_near_a_drawn_lamp_is_taken_back() -> None:
     assert np.allclose(f[25, 5], BG + 2.0)  # not near the lamp: kept
     got = _energy_above_bg(f) - float(luminance(np.float64(2.0) * np.ones(3)))
     assert abs(got / energy - 1) < 0.01  # the near placement is not counted twice
+
+
+def _roll(f: np.ndarray, by: int) -> np.ndarray:
+    return np.roll(f, by, axis=1)
+
+
+def test_a_lamp_crossing_the_seam_is_one_lamp() -> None:
+    """The same moving lamp with the map's columns rolled so that it crosses the 0 / 2 pi seam:
+    drawn at the same place (rolled) with the same energy as far from the seam."""
+    energy = _energy_above_bg(_lamp_map(30.0))
+    by = WIDTH - 29  # the lamp at column 29 sits on the seam
+    t = LampTracker(WIDTH)
+    f, sat = _censored(26.0, 26.0)
+    t.update(-1, np.ascontiguousarray(_roll(f, by)).reshape(-1, 3), _roll(sat, by).reshape(-1))
+    for k, col in enumerate([26.0, 28.0]):
+        t.update(k, np.ascontiguousarray(_roll(_lamp_map(col), by)).reshape(-1, 3), np.zeros(ROWS * WIDTH, bool))
+    assert len(t.tracks) == 1
+    f, sat = _censored(28.0, 30.0)
+    rolled = np.ascontiguousarray(_roll(f, by))
+    assert t.update(2, rolled.reshape(-1, 3), np.ascontiguousarray(_roll(sat, by)).reshape(-1)) == 1
+    back = _roll(rolled, -by)  # the seam now runs through the lamp's old and new places
+    assert abs(_centroid_col(back) - 30.0) < 0.25
+    assert abs(_energy_above_bg(back) / energy - 1) < 0.01
