@@ -159,3 +159,31 @@ async def test_on_demand_lights_need_the_published_frame_only():
     with pytest.raises(InputError) as e:
         lights_on_demand(published, "pharr", 0)
     assert e.value.param == "count"
+
+
+def test_published_maps_are_never_rewritten_while_held() -> None:
+    """The per-frame map buffers are reused only when nothing holds them (a result, a view, a
+    memoryview): a held map keeps its frame's values, a released one is reused with zeros below."""
+    from device.pipeline import _Geometry
+
+    geo = _Geometry.__new__(_Geometry)  # only the map buffers: no projector needed
+    geo.height, geo._maps = 8, []
+    frame = np.ones((4 * 16, 3), np.float32)
+    a = geo.equirect_map(frame)
+    b = geo.equirect_map(2 * frame)
+    assert a is not b
+    assert a[0, 0, 0] == 1.0
+    assert not a[4:].any()
+    a[4:] = 9.0  # a careless consumer
+    held = memoryview(b)
+    del a
+    c = geo.equirect_map(3 * frame)  # a's buffer, nothing holds it
+    assert c[0, 0, 0] == 3.0
+    assert not c[4:].any()
+    assert np.asarray(held)[0, 0, 0] == 2.0
+    view = c[:2]
+    del c, held, b
+    d = geo.equirect_map(4 * frame)  # b's buffer again; c's is held by the view
+    assert d[0, 0, 0] == 4.0
+    assert view[0, 0, 0] == 3.0
+    assert len(geo._maps) == 2
