@@ -244,10 +244,6 @@ class LampTracker:
     recent: int = 8          # frames: only a region saturated this recently (in or near its box) is tracked
     max_lamps: int = 4       # the brightest this many such regions (a frame's cost stays bounded)
     tracks: list[_Track] = field(default_factory=list)
-    # this frame's placements by the merge's hold (pixels, amounts) and their reach
-    _placed: tuple[np.ndarray, np.ndarray] = field(
-        default_factory=lambda: (np.zeros(0, np.int64), np.zeros((0, 3), np.float32)), repr=False)
-    _reach: int = field(default=0, repr=False)
     # frames since each pixel was last seen saturated (255: long ago)
     _sat_age: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.uint8), repr=False)
 
@@ -261,8 +257,7 @@ class LampTracker:
         rows = fused.shape[0] // self.width
         f = fused.reshape(rows, self.width, 3)
         sat = satnow.reshape(rows, self.width)
-        self._placed = placed if placed is not None else (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
-        self._reach = reach
+        dest, added = placed if placed is not None else (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self._sat_age.shape != sat.shape:
             self._sat_age = np.full(sat.shape, 255, np.uint8)
         drawn = 0
@@ -272,13 +267,18 @@ class LampTracker:
             shift = t.velocity * (frame - t.frame)
             if float(np.hypot(*shift)) < self.min_shift:
                 continue
-            if self._draw(t, shift, f, sat):
+            taken = self._draw(t, shift, f, sat, dest, added, reach)
+            if taken is not None:
                 drawn += 1
+                dest, added = dest[~taken], added[~taken]  # taken back once
         self._measure(frame, f, sat)
         return drawn
 
     # ---- drawing --------------------------------------------------------------------------
-    def _draw(self, t: _Track, shift: np.ndarray, f: np.ndarray, sat: np.ndarray) -> bool:
+    def _draw(self, t: _Track, shift: np.ndarray, f: np.ndarray, sat: np.ndarray, dest: np.ndarray,
+              added: np.ndarray, reach: int) -> np.ndarray | None:
+        """Draw ``t`` moved by ``shift`` if this frame sees its place saturated; returns which of
+        the hold's placements (``dest``, ``added``) it took back, or None if it drew nothing."""
         rows, width = sat.shape
         h, w = t.footprint.shape
         dr, dc = int(np.floor(shift[0])), int(np.floor(shift[1]))
@@ -295,21 +295,17 @@ class LampTracker:
         a0, b0 = min(t.origin[0], r0), min(t.origin[1], c0)
         a1, b1 = max(t.origin[0] + h, r0 + h + 1), max(t.origin[1] + w, c0 + w + 1)
         if a0 < 0 or a1 > rows or b1 - b0 > width:
-            return False  # at the map's top or bottom: left to the merge
+            return None  # at the map's top or bottom: left to the merge
         cols = np.arange(b0, b1) % width
         sat_box = sat[a0:a1][:, cols]
         sat_new = sat_box[r0 - a0:r0 - a0 + h + 1, c0 - b0:c0 - b0 + w + 1]
         if not foot.any() or sat_new[foot].mean() < 0.5:
-            return False  # the frame measures most of where the lamp should be (or it is gone)
+            return None  # the frame measures most of where the lamp should be (or it is gone)
         # what the merge's hold added near the lamp goes back: the image carries the lamp's energy
-        dest, added = self._placed
-        if len(dest):
-            g = self._reach
-            pr, pc = dest // width, dest % width
-            near = (pr >= a0 - g) & (pr < a1 + g) & ((pc - (b0 - g)) % width < b1 - b0 + 2 * g)
-            if near.any():
-                np.subtract.at(f.reshape(-1, 3), dest[near], added[near])
-                self._placed = (dest[~near], added[~near])
+        pr, pc = dest // width, dest % width
+        near = (pr >= a0 - reach) & (pr < a1 + reach) & ((pc - (b0 - reach)) % width < b1 - b0 + 2 * reach)
+        if near.any():
+            np.subtract.at(f.reshape(-1, 3), dest[near], added[near])
         # the region the lamp occupied then or now: its saturated pixels are redrawn
         region = f[a0:a1][:, cols]
         redraw = sat_box.copy()
@@ -327,7 +323,7 @@ class LampTracker:
         new[r0 - a0:r0 - a0 + h + 1, c0 - b0:c0 - b0 + w + 1] += img * min(scale, 2.0)
         region[redraw] = new[redraw]
         f[a0:a1, cols] = region
-        return True
+        return near
 
     # ---- measuring ------------------------------------------------------------------------
     def _measure(self, frame: int, f: np.ndarray, sat: np.ndarray) -> None:
