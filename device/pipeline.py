@@ -491,7 +491,9 @@ class Pipeline:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp = self._frame, now
             self._last_sampled = (coarse, time.monotonic())
-            self._sampled_lum = lum_w
+            if self._sampled_lum is None or self._sampled_lum.shape != lum_w.shape:
+                self._sampled_lum = np.empty_like(lum_w)
+            np.copyto(self._sampled_lum, lum_w)
             self._changed_since[:] = False
             self._guessed = bool(merge.held.any())
         t3 = time.perf_counter()
@@ -627,6 +629,7 @@ class _Geometry:
         self.full_scale = float(np.max(resp.inverse[-1]))
         self._luts: dict[tuple[Any, ...], tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]] = {}
         self._maps: list[np.ndarray] = []  # the published maps' buffers (see equirect_map)
+        self._lum: np.ndarray | None = None  # the change tests' per-pixel energy (see weighted_luminance)
 
     def equirect_map(self, fused: np.ndarray) -> np.ndarray:
         """A new (H, 2H, 3) map: ``fused`` in the upper half, zeros below.
@@ -685,10 +688,14 @@ class _Geometry:
 
     def weighted_luminance(self, fused: np.ndarray) -> np.ndarray:
         """Luminance x solid angle of each upper-hemisphere output pixel (rows,) float64: what
-        the change tests compare, computed once per frame."""
+        the change tests compare, computed once per frame into one buffer that the next call
+        overwrites (a fresh 512 kB array a frame paid its page faults under the service's
+        allocator settings, as the maps did)."""
         from device.hdr.rolling import weighted_luminance
 
-        return weighted_luminance(fused, self.solid_angle_out)
+        if self._lum is None or self._lum.shape[0] != fused.shape[0]:
+            self._lum = np.empty(fused.shape[0], np.float64)
+        return weighted_luminance(fused, self.solid_angle_out, self._lum)
 
     def coarse_energy(self, lum_w: np.ndarray) -> np.ndarray:
         """:meth:`weighted_luminance` summed in _COARSE blocks of the upper hemisphere."""

@@ -160,28 +160,37 @@ def _terms(indptr, indices, data, geo_n, z, sl, j):  # type: ignore[no-untyped-d
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _estimate(num, den, q, s, lb, d, geo, dark_val, sat_val, g):  # type: ignore[no-untyped-def]
-    """One channel's (m, var, sat share, dark share, lower bound, upper bound) from its sums.
+def _estimate(num, den, q, s, lb, d, geo, inv_geo, dark_val, sat_val, g):  # type: ignore[no-untyped-def]
+    """One channel's (m, precision, sat share, dark share, lower bound, upper bound) from its
+    sums; precision 0: this frame measures nothing there (``inv_geo`` = 1 / ``geo``, shared by
+    the three channels).
 
     A footprint with any saturated sample is *censored*: the mean of its other samples would
     drop the brightest part (a sun smaller than the output pixel, a lamp's edge) and bias the
-    map low, so such a frame measures nothing there (``var`` inf) and gives a lower bound, the
-    footprint's mean with the saturated samples at the saturation threshold. The upper bound of
-    the too-dark samples is the highest weightless code's value x the pixel's mean gain; a
-    footprint of nothing but too-dark samples is a weak measurement, the middle of [0, upper]
-    with a variance (upper^2 / 3) wider than the uniform's, so that a short exposure reading
-    black where a long one measured a dim wall is no change, and a lamp switched off is."""
+    map low, so such a frame measures nothing there and gives a lower bound, the footprint's
+    mean with the saturated samples at the saturation threshold. The upper bound of the
+    too-dark samples is the highest weightless code's value x the pixel's mean gain; a footprint
+    of nothing but too-dark samples is a weak measurement, the middle of [0, upper] with a
+    variance (upper^2 / 3) wider than the uniform's, so that a short exposure reading black
+    where a long one measured a dim wall is no change, and a lamp switched off is.
+
+    The mean ``num / den`` and the precision ``den^2 / q`` share one division: 65,536 output
+    pixels x 3 channels a frame, and the divisions were most of the merge's per-pixel cost."""
     if geo <= 0:
-        return 0.0, np.inf, 0.0, 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     upper = dark_val * g if d > 0 else 0.0
     if s > 0:  # censored: the footprint's mean is at least this, and this frame measures no more
-        lower = (num + sat_val * lb) / geo
-        return lower, np.inf, s / geo, d / geo, lower, upper
+        lower = (num + sat_val * lb) * inv_geo
+        return lower, 0.0, s * inv_geo, d * inv_geo, lower, upper
     if den <= d:  # nothing but too-dark samples: somewhere in [0, upper], a weak measurement
         if upper > 0:
-            return 0.5 * upper, upper * upper / 3.0, 0.0, d / geo, 0.0, upper
-        return 0.0, np.inf, 0.0, d / geo, 0.0, upper
-    return num / den, q / (den * den), 0.0, d / geo, 0.0, upper
+            return 0.5 * upper, 3.0 / (upper * upper), 0.0, d * inv_geo, 0.0, upper
+        return 0.0, 0.0, 0.0, d * inv_geo, 0.0, upper
+    if not q > 0:  # no spread to weigh by: a mean, but no measurement
+        return num / den, 0.0, 0.0, d * inv_geo, 0.0, upper
+    r = 1.0 / (den * q)
+    p = den * den * den * r
+    return num * q * r, (p if p < np.inf else 0.0), 0.0, d * inv_geo, 0.0, upper
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=_FAST)
@@ -189,10 +198,13 @@ def _frame_kernel(indptr, indices, data, geo_n, mean_gain, z, sl, dark_val, sat_
                   m, var, sat, dark, lower, upper):
     for j in numba.prange(rows):
         t = _terms(indptr, indices, data, geo_n, z, sl, j)
+        inv_geo = 1.0 / t[18] if t[18] > 0 else 0.0
         for c in range(3):
-            (m[j, c], var[j, c], sat[j, c], dark[j, c], lower[j, c],
-             upper[j, c]) = _estimate(t[c], t[3 + c], t[6 + c], t[9 + c], t[12 + c], t[15 + c], t[18],
-                                      dark_val[c], sat_val[c], mean_gain[j])
+            mc, pc, sat[j, c], dark[j, c], lower[j, c], upper[j, c] = _estimate(
+                t[c], t[3 + c], t[6 + c], t[9 + c], t[12 + c], t[15 + c], t[18], inv_geo, dark_val[c], sat_val[c],
+                mean_gain[j])
+            m[j, c] = mc
+            var[j, c] = 1.0 / pc if pc > 0 else np.inf
 
 
 def frame_to_map(table: object, geo_n: np.ndarray, mean_gain: np.ndarray, codes: np.ndarray,
@@ -233,12 +245,13 @@ def _merge_kernel(indptr, indices, data, geo_n, mean_gain, z, sl, dark_val, sat_
     for j in numba.prange(npx):
         t = _terms(indptr, indices, data, geo_n, z, sl, j)
         g = mean_gain[j]
-        e0 = _estimate(t[0], t[3], t[6], t[9], t[12], t[15], t[18], dark_val[0], sat_val[0], g)
-        e1 = _estimate(t[1], t[4], t[7], t[10], t[13], t[16], t[18], dark_val[1], sat_val[1], g)
-        e2 = _estimate(t[2], t[5], t[8], t[11], t[14], t[17], t[18], dark_val[2], sat_val[2], g)
+        ig = 1.0 / t[18] if t[18] > 0 else 0.0
+        e0 = _estimate(t[0], t[3], t[6], t[9], t[12], t[15], t[18], ig, dark_val[0], sat_val[0], g)
+        e1 = _estimate(t[1], t[4], t[7], t[10], t[13], t[16], t[18], ig, dark_val[1], sat_val[1], g)
+        e2 = _estimate(t[2], t[5], t[8], t[11], t[14], t[17], t[18], ig, dark_val[2], sat_val[2], g)
         ch = False
         for c in range(3):  # the others' estimate: the sums without this slot's old entry
-            fm, v, fs, _fd, fl, _fu = e0 if c == 0 else (e1 if c == 1 else e2)
+            fm, fp, fs, _fd, fl, _fu = e0 if c == 0 else (e1 if c == 1 else e2)
             po = p_s[slot, j, c]
             dn = den[j, c] - po
             if dn <= 1e-6 * den[j, c] or dn <= 0:
@@ -247,18 +260,18 @@ def _merge_kernel(indptr, indices, data, geo_n, mean_gain, z, sl, dark_val, sat_
             if fs > 0:  # saturated (censored): brightened beyond the others?
                 if fl * dn > f * (1.0 + rel) and f + np.sqrt(k2 * dn) < fl * dn:
                     ch = True
-            elif v < np.inf and v > 0:  # measured (too dark included): disagrees beyond noise?
+            elif fp > 0:  # measured (too dark included): disagrees beyond noise?
                 fmd = fm * dn
                 d = abs(fmd - f) - rel * max(f, fmd)  # x dn
-                if d > 0 and d * d > k2 * (v * dn + 1.0) * dn:
+                if d > 0 and d * d * fp > k2 * (dn + fp) * dn:  # d^2 > k2 (var dn + 1) dn, no division
                     ch = True
         changed[j] = ch
         satnow[j] = (e0[2] > 0) | (e1[2] > 0) | (e2[2] > 0)
         any_bound = False
         for c in range(3):
-            fm, v, fs, fd, fl, _fu = e0 if c == 0 else (e1 if c == 1 else e2)
-            new_m = fm if (v < np.inf and v > 0) else 0.0
-            new_p = 1.0 / v if (v < np.inf and v > 0) else 0.0
+            fm, fp, fs, fd, fl, _fu = e0 if c == 0 else (e1 if c == 1 else e2)
+            new_m = fm if fp > 0 else 0.0
+            new_p = fp
             if ch:  # the other slots are stale here: this frame alone stands
                 for k in range(nslots):
                     if k != slot:
@@ -298,7 +311,7 @@ def _merge_kernel(indptr, indices, data, geo_n, mean_gain, z, sl, dark_val, sat_
                 if fl > bound[j, c]:
                     bound[j, c] = fl
             elif new_p > 0:
-                if bound[j, c] > 0 and (fm + np.sqrt(k2 * v)) < bound[j, c] * (1.0 - rel):
+                if bound[j, c] > 0 and (fm + np.sqrt(k2 / new_p)) < bound[j, c] * (1.0 - rel):
                     bound[j, c] = 0.0
             elif fd >= dark_share:
                 bound[j, c] = 0.0
@@ -430,10 +443,11 @@ def _weighted_luminance(rgb, weights, out):  # type: ignore[no-untyped-def]
                   + LUM_B * np.float64(rgb[j, 2])) * weights[j]
 
 
-def weighted_luminance(rgb: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def weighted_luminance(rgb: np.ndarray, weights: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Rec. 709 luminance of (N, 3) linear RGB x ``weights`` (N,), float64, in one pass (the
-    change tests' per-pixel energy: luminance x solid angle, every frame)."""
-    out = np.empty(rgb.shape[0], np.float64)
+    change tests' per-pixel energy: luminance x solid angle, every frame), into ``out`` if given."""
+    if out is None:
+        out = np.empty(rgb.shape[0], np.float64)
     _weighted_luminance(rgb, np.asarray(weights, np.float64), out)
     return out
 
@@ -526,7 +540,8 @@ class RollingMerge:
                mean_gain: np.ndarray, codes: np.ndarray, lut: np.ndarray,
                bounds: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Fuse, project and merge one frame (arguments as :func:`frame_to_map`) into its slot;
-        returns the fused map (pixels, 3) float32 (a view that the next update overwrites)."""
+        returns the fused map (pixels, 3) float32 (a buffer of the merge's that a later update
+        overwrites: copy what must outlive the frame)."""
         s = self._slot(key, frame)
         self.frames[s] = frame
         self._updates += 1
@@ -547,8 +562,10 @@ class RollingMerge:
             placed = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self.tracker is not None:
             self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach)
-        self.prev[:] = self.fused
-        return self.fused
+        # this frame's map is the next one's ``prev``; the kernel writes every pixel of ``out``,
+        # so the two buffers swap instead of copying 0.8 MB a frame
+        self.prev, self.fused = self.fused, self.prev
+        return self.prev
 
     def reset(self) -> None:
         self.keys.clear()

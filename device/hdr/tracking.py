@@ -58,28 +58,38 @@ __all__ = ["LampTracker"]
 
 @numba.njit(cache=True, nogil=True)
 def _scan(f, sat, age, relative):  # type: ignore[no-untyped-def]
-    """One frame's bookkeeping in two passes over the (rows, width) map: ``age`` (frames since
+    """One frame's bookkeeping in one pass over the (rows, width) map: ``age`` (frames since
     each pixel was seen saturated, at most 255) updated in place; the brightest luminance; the
-    rows ``[r0, r1)`` holding pixels above ``relative`` of it, and which columns hold any."""
+    rows ``[r0, r1)`` holding pixels above ``relative`` of it, and which columns hold any (from
+    each row's and each column's brightest: the same as testing every pixel against the peak,
+    without a second pass)."""
     rows, width = sat.shape
     peak = 0.0
+    row_max = np.zeros(rows)
+    col_max = np.zeros(width)
     for r in range(rows):
+        rm = 0.0
         for c in range(width):
             a = age[r, c]
             age[r, c] = 0 if sat[r, c] else (a + 1 if a < 255 else 255)
             v = LUM_R * f[r, c, 0] + LUM_G * f[r, c, 1] + LUM_B * f[r, c, 2]
-            if v > peak:
-                peak = v
+            if v > rm:
+                rm = v
+            if v > col_max[c]:
+                col_max[c] = v
+        row_max[r] = rm
+        if rm > peak:
+            peak = rm
     r0, r1 = rows, 0
     cols = np.zeros(width, np.bool_)
     if peak > 0:
         t = relative * peak
         for r in range(rows):
-            for c in range(width):
-                if LUM_R * f[r, c, 0] + LUM_G * f[r, c, 1] + LUM_B * f[r, c, 2] > t:
-                    r0 = min(r0, r)
-                    r1 = max(r1, r + 1)
-                    cols[c] = True
+            if row_max[r] > t:
+                r0 = min(r0, r)
+                r1 = r + 1
+        for c in range(width):
+            cols[c] = col_max[c] > t
     return peak, r0, r1, cols
 
 
