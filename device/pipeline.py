@@ -225,6 +225,7 @@ class Pipeline:
         self.latest: FrameResult | None = None
         self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0}
         self._tables: asyncio.Future[Any] | None = None
+        self._sampler_warm: asyncio.Future[Any] | None = None  # (see _warm_sampler)
         self._geo: Any = None  # projection table and per-pixel constants (_Geometry)
         self._refine = False  # a coarse table serves: build the balanced one behind it
         self._settled: tuple[float, float] | None = None  # controls a metadata-less camera runs now
@@ -265,6 +266,8 @@ class Pipeline:
             await self.camera.set_mode(match[0])
         if self._geo is None and self._tables is None:
             self._tables = asyncio.ensure_future(asyncio.to_thread(self._build_geometry))
+        if self._sampler is None and self._sampler_warm is None:
+            self._sampler_warm = asyncio.ensure_future(asyncio.to_thread(self._warm_sampler))
         caps = self.camera.capabilities
         cfg = self.config
         frame_time = 1.0 / max(self.camera.mode.max_fps, 1e-3)
@@ -348,9 +351,12 @@ class Pipeline:
             self._warm(geo)
         except Exception as e:
             log.debug("kernel warm-up failed: %s", e)
-        from device.core.memory import release_memory
+        # the table build's temporaries; a table loaded from disk leaves none, and the
+        # collection cost 60-80 ms of a warm start (the frames release memory once they run)
+        if projector.built_now:
+            from device.core.memory import release_memory
 
-        release_memory()  # the table build's temporaries
+            release_memory()
         return geo
 
     def _warm(self, geo: _Geometry) -> None:
@@ -368,12 +374,20 @@ class Pipeline:
         fused = RollingMerge(geo.rows, width=2 * geo.height, max_slots=2, resum_every=1).update(
             (1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark)
         geo.weighted_luminance(fused)
-        warm = np.zeros((16, 32, 3), np.float32)
-        warm[:8] = 1.0
+
+    def _warm_sampler(self) -> None:
+        """One throwaway sampler samples a map of the pipeline's size twice (a whole pass, then
+        an incremental one), in its own thread beside the tables' and the first capture: its
+        kernels load and its per-size tables are made (the Q2-Tree's binning of a 256 x 512 map,
+        60 ms, is kept by ``equirect_tables``' memo), so the first frame samples warm. The
+        pipeline's own sampler starts fresh: a stateful one's filters never see this map."""
+        h = self.config.equirect_height
+        warm = np.zeros((h, 2 * h, 3), np.float32)
+        warm[: h // 2] = 1.0
         sampler = self._make_sampler(self.config.sampler)
-        sampler.sample(warm, 13)
-        warm[:4, :8] = 3.0
-        sampler.sample(warm, 13)
+        sampler.sample(warm, self.config.light_count)
+        warm[: h // 8, : h // 4] = 3.0
+        sampler.sample(warm, self.config.light_count)
 
     async def _ensure_tables(self) -> None:
         from device.hdr.rolling import RollingMerge
@@ -405,6 +419,15 @@ class Pipeline:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
                                        max_slots=self.config.max_exposures + 2)
         if self._sampler is None:
+            if self._sampler_warm is not None:
+                task = self._sampler_warm
+                try:  # warm-up only: a failure costs the first frame time, nothing else
+                    await asyncio.shield(task)
+                except Exception as e:
+                    log.debug("sampler warm-up failed: %s", e)
+                finally:
+                    if task.done():
+                        self._sampler_warm = None
             self._sampler = self._make_sampler(self.config.sampler)
 
     # ---- one frame ----------------------------------------------------------------------------

@@ -266,12 +266,20 @@ def _norm_ppf(p):  # type: ignore[no-untyped-def]
 _PPF_CELLS = 1 << 16
 
 
+@numba.njit(cache=True, nogil=True)
+def _ppf_fill(u, out):  # type: ignore[no-untyped-def]
+    for k in range(u.shape[0]):
+        out[k] = _norm_ppf(u[k])
+
+
 @functools.cache
 def _ppf_table() -> np.ndarray:
-    """Phi^-1 at u = k / 2^16, k = 0..2^16 (float64; the ends use the exact ppf at half a cell)."""
+    """Phi^-1 at u = k / 2^16, k = 0..2^16 (float64; the ends use the exact ppf at half a cell),
+    filled by one compiled loop (65,537 calls from Python took 0.23 s of the camera's open)."""
     u = np.arange(_PPF_CELLS + 1, dtype=np.float64) / _PPF_CELLS
     u[0], u[-1] = 0.5 / _PPF_CELLS, 1 - 0.5 / _PPF_CELLS
-    out = np.array([_norm_ppf(float(x)) for x in u])
+    out = np.empty_like(u)
+    _ppf_fill(u, out)
     out.flags.writeable = False
     return out
 

@@ -133,6 +133,7 @@ class Projector:
             built = load_built(path)
         if built is None and load_only:
             raise LookupError("projection tables not built yet")
+        self.built_now = built is None  # built in this call (not from the memo or the disk cache)
         if built is None:
             built = _build_all(self.calibration, self.polar_height, self.equirect_height,
                                self.nside, self.ring_margin_deg, self.subdiv, self.maps, self.balanced)
