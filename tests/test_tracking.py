@@ -134,3 +134,37 @@ def test_a_lamp_crossing_the_seam_is_one_lamp() -> None:
     back = _roll(rolled, -by)  # the seam now runs through the lamp's old and new places
     assert abs(_centroid_col(back) - 30.0) < 0.25
     assert abs(_energy_above_bg(back) / energy - 1) < 0.01
+
+
+def test_a_static_lamps_energy_is_filtered_over_its_measurements_and_a_switch_resets_it() -> None:
+    """A lamp only the short exposures measure, every other frame, with 3% noise per pixel: its
+    published energy varies less than one measurement's and is unbiased, on the frames that
+    measure it and on the ones that hold it; a step to 1.5 x is published at once."""
+    rng = np.random.default_rng(3)
+    sigma = 0.03
+    t = LampTracker(WIDTH)
+    sat = np.zeros((ROWS, WIDTH), bool)
+    sat[10:15, 18:23] = True
+    raw, measured, held = [], [], []
+    for k in range(60):
+        peak = 100.0 if k < 40 else 150.0
+        excess = _lamp_map(20.0, peak).astype(np.float64) - BG
+        noisy = (BG + excess * (1 + sigma * rng.standard_normal(excess.shape))).astype(np.float32)
+        prec = (1.0 / (sigma * excess + 1e-3) ** 2).reshape(-1, 3)
+        flat = noisy.reshape(-1, 3).copy()
+        t.update(2 * k, flat, np.zeros(ROWS * WIDTH, bool), precision=prec)
+        raw.append(_energy_above_bg(noisy))
+        measured.append(_energy_above_bg(flat.reshape(ROWS, WIDTH, 3)))
+        # the long frame after it: saturated there, the merge holds the measurement
+        hold = noisy.reshape(-1, 3).copy()
+        t.update(2 * k + 1, hold, sat.reshape(-1), precision=prec)
+        held.append(_energy_above_bg(hold.reshape(ROWS, WIDTH, 3)))
+    true = _energy_above_bg(_lamp_map(20.0, 100.0))
+    raw_a, meas_a, held_a = (np.array(x[5:40]) / true for x in (raw, measured, held))
+    assert np.std(meas_a) < 0.7 * np.std(raw_a)
+    assert np.std(held_a) < 0.7 * np.std(raw_a)
+    assert abs(np.mean(meas_a) - 1) < 0.01
+    assert np.allclose(held_a, meas_a, rtol=1e-4)  # a held frame publishes the filtered energy too
+    # the step: the first frame that measures it publishes it as measured
+    assert abs(measured[40] / raw[40] - 1) < 1e-4
+    assert abs(measured[40] / (1.5 * true) - 1) < 0.05

@@ -22,8 +22,8 @@ the sky around it.
 :class:`RollingMerge` keeps the latest map of every exposure in use (a *slot* per exposure and
 gain) and fuses them per pixel by inverse variance (running sums, so a frame costs O(1) per
 pixel beyond its own pass). A slot that measures the same value again (within 3 sigma of its
-own last one) averages with its past (``decay``), so a sun only the shortest exposure measures
-is not as noisy as one frame of it. When a new frame disagrees with the other slots beyond
+own last one) averages with its past (``decay``); a lamp whose edge pixels move beyond their
+noise has its energy averaged by the tracker instead (:mod:`device.hdr.tracking`). When a new frame disagrees with the other slots beyond
 their noise (``k sigma`` plus ``rel_tol``, or its saturation's lower bound lies above them: a
 lamp switched on or off, a flashlight moved), the other slots are dropped at that pixel, so the
 change is in the fused map from this very frame on, never averaged with what was there before.
@@ -561,7 +561,7 @@ class RollingMerge:
         else:
             placed = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self.tracker is not None:
-            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach)
+            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach, self.den)
         # this frame's map is the next one's ``prev``; the kernel writes every pixel of ``out``,
         # so the two buffers swap instead of copying 0.8 MB a frame
         self.prev, self.fused = self.fused, self.prev

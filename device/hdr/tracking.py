@@ -38,6 +38,15 @@ widest run of columns without one), and a lamp is measured and drawn modulo the 
 crossing the map's 0 / 2 pi seam is one lamp (on the flashlight's crossing the merge alone gave
 glossy 3.0-3.9% for six frames while the tracker could not follow it).
 
+A lamp's energy is filtered across its measurements (:meth:`LampTracker._filter`): a lamp only
+the shortest exposure measures is a handful of pixels with one frame's shot noise each, and the
+merge's per-pixel averaging does not reach a lamp that moves a fraction of a pixel a frame (its
+edge pixels change beyond their noise). Its energy does not change when it moves, so the
+measurements that agree within ``k_sigma`` are averaged by inverse variance (the merge's
+precision sums) and the published image is scaled to that, on the frames that measure the lamp
+and on the ones that hold it. Daylight, 300 frames every frame against the truth: diffuse median
+0.24 -> 0.12%, max 1.02 -> 0.71%; glossy max 3.12 -> 2.41%.
+
 Limits: constant velocity between two measurements (one frame, 33 ms, apart in the live
 schedule); a lamp slower than ``min_shift`` a frame (the daylight sun) is tracked but never drawn:
 the merge holds it; a lamp over the top or bottom row of the map (the zenith) is left to the merge.
@@ -239,6 +248,9 @@ class _Track:
     image: np.ndarray       # (h, w, 3) radiance above the background
     background: np.ndarray  # (h, w, 3) the radiance around and under the lamp without it
     footprint: np.ndarray   # (h, w) bool: where the image is the lamp
+    energy: float = 0.0     # the lamp's filtered energy (sum of image luminance x sin(theta))
+    precision: float = 0.0  # 1 / its variance (0: unknown, no filtering)
+    scale: float = 1.0      # filtered / measured energy of its last measurement (the image holds it)
 
 
 @dataclass
@@ -253,20 +265,32 @@ class LampTracker:
     margin: int = 3          # output pixels of background kept around a lamp's image
     recent: int = 8          # frames: only a region saturated this recently (in or near its box) is tracked
     max_lamps: int = 4       # the brightest this many such regions (a frame's cost stays bounded)
+    energy_decay: float = 0.75  # a consistent measurement keeps this share of the energy's past precision
+    # a measurement agrees with the filtered energy within this many sigma (the merge's change
+    # test's 5: the fused pixels' variances leave out that neighbouring output pixels share
+    # fisheye samples, so a lamp's energy scatters 2-3 x more than their sum says; with 3 sigma
+    # the daylight sun reset on 1 measurement in 6)
+    k_sigma: float = 5.0
     tracks: list[_Track] = field(default_factory=list)
     # frames since each pixel was last seen saturated (255: long ago)
     _sat_age: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.uint8), repr=False)
+    _row_w: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # sin(theta) per row
 
     def update(self, frame: int, fused: np.ndarray, satnow: np.ndarray,
-               placed: tuple[np.ndarray, np.ndarray] | None = None, reach: int = 0) -> int:
+               placed: tuple[np.ndarray, np.ndarray] | None = None, reach: int = 0,
+               precision: np.ndarray | None = None) -> int:
         """Draw the moved lamps a censored frame cannot measure into ``fused`` (pixels, 3) in
         place, then measure the lamps this frame sees unsaturated. ``placed``: the pixels and
         amounts the merge's hold added this frame (``_place_held``); a drawn lamp takes back what
-        was added within ``reach`` of it, since its image carries all its energy. Returns the
-        lamps drawn."""
+        was added within ``reach`` of it, since its image carries all its energy. ``precision``
+        (pixels, 3): 1 / the variance of each fused value (the merge's sums); with it, a measured
+        lamp's energy is filtered over its consistent measurements (:meth:`_filter`). Returns
+        the lamps drawn."""
         rows = fused.shape[0] // self.width
         f = fused.reshape(rows, self.width, 3)
         sat = satnow.reshape(rows, self.width)
+        if self._row_w.shape[0] != rows:  # rows of the upper hemisphere of a (2 rows)-row map
+            self._row_w = np.sin(np.pi * (np.arange(rows) + 0.5) / (2 * rows))
         dest, added = placed if placed is not None else (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self._sat_age.shape != sat.shape:
             self._sat_age = np.full(sat.shape, 255, np.uint8)
@@ -276,13 +300,73 @@ class LampTracker:
                 continue
             shift = t.velocity * (frame - t.frame)
             if float(np.hypot(*shift)) < self.min_shift:
+                self._rescale(t, f, sat)
                 continue
             taken = self._draw(t, shift, f, sat, dest, added, reach)
             if taken is not None:
                 drawn += 1
                 dest, added = dest[~taken], added[~taken]  # taken back once
-        self._measure(frame, f, sat)
+        prec = precision.reshape(rows, self.width, 3) if precision is not None else None
+        self._measure(frame, f, sat, prec)
         return drawn
+
+    # ---- the energy of a measured lamp ------------------------------------------------------
+    def _filter(self, t: _Track, old: _Track | None, prec: np.ndarray | None, f: np.ndarray) -> None:
+        """Filter the energy of lamp ``t`` just measured (its image, background and footprint
+        in ``t``) with its track's past: a lamp only the shortest exposure measures is a few
+        pixels, each with the shot noise of one frame (the daylight sun: its energy moved +-0.5%
+        of the map from one measurement to the next), and the per-pixel averaging of the merge
+        does not reach it, since a lamp that moves a fraction of a pixel changes its edge
+        pixels beyond their noise. Its energy does not change when it moves, so it is averaged
+        here, by inverse variance with ``energy_decay`` on the past, while each measurement
+        agrees with the filtered value within ``k_sigma``; a switch, a dimmer or a lamp that
+        came closer resets it. The image is scaled to the filtered energy, in the published map
+        (this frame) and in the track (drawn and held frames)."""
+        width = f.shape[1]
+        h, w = t.footprint.shape
+        rr = np.arange(t.origin[0], t.origin[0] + h)
+        cc = np.arange(t.origin[1], t.origin[1] + w) % width
+        wr = self._row_w[rr][:, None]
+        lum = LUM_R * t.image[..., 0] + LUM_G * t.image[..., 1] + LUM_B * t.image[..., 2]
+        e = float((lum * wr)[t.footprint].sum())
+        if prec is None or e <= 0:
+            return
+        p = prec[rr][:, cc]
+        with np.errstate(divide="ignore"):
+            var_l = (LUM_R**2 / p[..., 0] + LUM_G**2 / p[..., 1] + LUM_B**2 / p[..., 2])
+        var = float((var_l * wr * wr)[t.footprint].sum())
+        if not (0 < var < np.inf):
+            return
+        est, pr = e, 1.0 / var
+        if old is not None and old.precision > 0 and (e - old.energy) ** 2 < self.k_sigma**2 * (var + 1.0 / old.precision):
+            kp = self.energy_decay * old.precision
+            est = (kp * old.energy + e / var) / (kp + 1.0 / var)
+            pr = kp + 1.0 / var
+        t.energy, t.precision, t.scale = est, pr, est / e
+        if t.scale != 1.0:
+            t.image *= np.float32(t.scale)
+            box = f[rr][:, cc]
+            box[t.footprint] = t.background[t.footprint] + t.image[t.footprint]
+            f[np.ix_(rr, cc)] = box
+
+    def _rescale(self, t: _Track, f: np.ndarray, sat: np.ndarray) -> None:
+        """A static lamp on a frame that does not measure it: the merge holds its last
+        measurement there; its excess over the background is scaled to the filtered energy."""
+        if t.scale == 1.0:
+            return
+        rows, width = f.shape[:2]
+        h, w = t.footprint.shape
+        if t.origin[0] < 0 or t.origin[0] + h > rows:
+            return
+        rr = np.arange(t.origin[0], t.origin[0] + h)
+        cc = np.arange(t.origin[1], t.origin[1] + w) % width
+        lum = LUM_R * t.image[..., 0] + LUM_G * t.image[..., 1] + LUM_B * t.image[..., 2]
+        if lum[sat[np.ix_(rr, cc)] & t.footprint].sum() < 0.5 * lum[t.footprint].sum():
+            return  # the frame measures most of its energy: its own value stands
+        box = f[rr][:, cc]
+        bg = t.background[t.footprint]
+        box[t.footprint] = bg + (box[t.footprint] - bg) * np.float32(t.scale)
+        f[np.ix_(rr, cc)] = box
 
     # ---- drawing --------------------------------------------------------------------------
     def _draw(self, t: _Track, shift: np.ndarray, f: np.ndarray, sat: np.ndarray, dest: np.ndarray,
@@ -336,7 +420,7 @@ class LampTracker:
         return near
 
     # ---- measuring ------------------------------------------------------------------------
-    def _measure(self, frame: int, f: np.ndarray, sat: np.ndarray) -> None:
+    def _measure(self, frame: int, f: np.ndarray, sat: np.ndarray, prec: np.ndarray | None = None) -> None:
         rows, width = sat.shape
         peak, y0, y1, cols = _scan(f, sat, self._sat_age, float(self.relative))
         if not np.isfinite(peak) or peak <= 0 or y1 <= y0:
@@ -363,7 +447,10 @@ class LampTracker:
                 continued.add(id(old))
                 if 0 < frame - old.frame <= self.max_age:
                     vel = _wrap_delta(centre - old.centre, width) / (frame - old.frame)
-            kept.append(_Track(frame, centre, vel, (y + y0 - g, (s0 + x - g) % width), img, base, foot))
+            track = _Track(frame, centre, vel, (y + y0 - g, (s0 + x - g) % width), img, base, foot)
+            if y + y0 - g >= 0 and y + y0 - g + foot.shape[0] <= rows:
+                self._filter(track, old, prec, f)
+            kept.append(track)
         # a track this frame did not measure (censored) stays until it is too old
         kept += [t for t in self.tracks if id(t) not in continued and frame - t.frame <= self.max_age]
         self.tracks = kept
