@@ -43,8 +43,10 @@ def test_every_frame_publishes_accurate_lights_on_the_shared_maps(name: str, sha
 
 def test_daylight_sun_is_published_at_its_energy_every_frame(artifacts_dir: Path) -> None:
     """A sun far brighter than anything the camera can expose for, smaller than an output pixel
-    and moving: measured only by the shortest exposure, censored in every other."""
-    res = measure("daylight", frames=120, every=4)
+    and moving: measured only by the shortest exposure, censored in every other. 300 frames,
+    every one scored: the sun's energy from one short frame scatters by +-0.5% of the map, and
+    before the tracker filtered it one frame in 300 went over 1% (frame 291, 1.02%)."""
+    res = measure("daylight", frames=300, every=1)
     _record("daylight", res, artifacts_dir)
     assert res["sets_per_sensor_s"] >= 25, res
     assert res["diffuse"]["max"] <= 0.01, res["diffuse"]
