@@ -60,7 +60,7 @@ import cv2
 import numba
 import numpy as np
 
-from device.core.sphere import LUM_B, LUM_G, LUM_R
+from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle, luminance
 
 __all__ = ["LampTracker"]
 
@@ -239,6 +239,12 @@ def _wrap_delta(d: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
+def _box(t: _Track, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The map rows and columns (modulo the width) of track ``t``'s image."""
+    h, w = t.footprint.shape
+    return np.arange(t.origin[0], t.origin[0] + h), np.arange(t.origin[1], t.origin[1] + w) % width
+
+
 @dataclass
 class _Track:
     frame: int              # the last frame that measured the lamp
@@ -248,7 +254,7 @@ class _Track:
     image: np.ndarray       # (h, w, 3) radiance above the background
     background: np.ndarray  # (h, w, 3) the radiance around and under the lamp without it
     footprint: np.ndarray   # (h, w) bool: where the image is the lamp
-    energy: float = 0.0     # the lamp's filtered energy (sum of image luminance x sin(theta))
+    energy: float = 0.0     # the lamp's filtered energy (sum of image luminance x solid angle)
     precision: float = 0.0  # 1 / its variance (0: unknown, no filtering)
     scale: float = 1.0      # filtered / measured energy of its last measurement (the image holds it)
 
@@ -274,7 +280,7 @@ class LampTracker:
     tracks: list[_Track] = field(default_factory=list)
     # frames since each pixel was last seen saturated (255: long ago)
     _sat_age: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.uint8), repr=False)
-    _row_w: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # sin(theta) per row
+    _row_w: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # solid angle per row
 
     def update(self, frame: int, fused: np.ndarray, satnow: np.ndarray,
                placed: tuple[np.ndarray, np.ndarray] | None = None, reach: int = 0,
@@ -289,8 +295,8 @@ class LampTracker:
         rows = fused.shape[0] // self.width
         f = fused.reshape(rows, self.width, 3)
         sat = satnow.reshape(rows, self.width)
-        if self._row_w.shape[0] != rows:  # rows of the upper hemisphere of a (2 rows)-row map
-            self._row_w = np.sin(np.pi * (np.arange(rows) + 0.5) / (2 * rows))
+        if self._row_w.shape[0] != rows:  # the upper hemisphere of a (2 rows)-row map
+            self._row_w = equirect_row_solid_angle(2 * rows)[:rows]
         dest, added = placed if placed is not None else (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self._sat_age.shape != sat.shape:
             self._sat_age = np.full(sat.shape, 255, np.uint8)
@@ -322,13 +328,9 @@ class LampTracker:
         agrees with the filtered value within ``k_sigma``; a switch, a dimmer or a lamp that
         came closer resets it. The image is scaled to the filtered energy, in the published map
         (this frame) and in the track (drawn and held frames)."""
-        width = f.shape[1]
-        h, w = t.footprint.shape
-        rr = np.arange(t.origin[0], t.origin[0] + h)
-        cc = np.arange(t.origin[1], t.origin[1] + w) % width
+        rr, cc = _box(t, f.shape[1])
         wr = self._row_w[rr][:, None]
-        lum = LUM_R * t.image[..., 0] + LUM_G * t.image[..., 1] + LUM_B * t.image[..., 2]
-        e = float((lum * wr)[t.footprint].sum())
+        e = float((luminance(t.image) * wr)[t.footprint].sum())
         if prec is None or e <= 0:
             return
         p = prec[rr][:, cc]
@@ -354,13 +356,10 @@ class LampTracker:
         measurement there; its excess over the background is scaled to the filtered energy."""
         if t.scale == 1.0:
             return
-        rows, width = f.shape[:2]
-        h, w = t.footprint.shape
-        if t.origin[0] < 0 or t.origin[0] + h > rows:
+        if t.origin[0] < 0 or t.origin[0] + t.footprint.shape[0] > f.shape[0]:
             return
-        rr = np.arange(t.origin[0], t.origin[0] + h)
-        cc = np.arange(t.origin[1], t.origin[1] + w) % width
-        lum = LUM_R * t.image[..., 0] + LUM_G * t.image[..., 1] + LUM_B * t.image[..., 2]
+        rr, cc = _box(t, f.shape[1])
+        lum = luminance(t.image)
         if lum[sat[np.ix_(rr, cc)] & t.footprint].sum() < 0.5 * lum[t.footprint].sum():
             return  # the frame measures most of its energy: its own value stands
         box = f[rr][:, cc]
