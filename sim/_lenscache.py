@@ -16,9 +16,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 
 from . import lens as _lens_module
+from ._sparse import Csr
 from .lens import SimLens
 
 __all__ = ["load_render_matrix"]
@@ -46,7 +46,7 @@ def load_render_matrix(lens: SimLens, eq_height: int, cache_dir: str) -> None:
     if path.is_file():
         try:
             with np.load(path, allow_pickle=False) as z:
-                m = sp.csr_matrix((z["data"], z["indices"], z["indptr"]), shape=tuple(z["shape"]))
+                m = Csr.checked(z["data"], z["indices"], z["indptr"], z["shape"])
         except (OSError, ValueError, KeyError) as e:
             log.warning("simulated lens cache %s unreadable (%s): rebuilding", path, e)
         else:

@@ -155,8 +155,10 @@ class SimCamera(Camera):
             self._reset_controls()
             self._pace_origin = None
             # load the sensor model's compiled kernels now (a driver is loaded before it
-            # streams), so the first frame does not pay for them
-            self.sensor.expose(np.zeros((2, 2, 3), np.float32), 1e-3, 1.0, self.mode.format, self.seed, 0)
+            # streams), so the first frame does not pay for them; off the loop (numba's first
+            # call loads its CPU target: ~0.1 s)
+            await asyncio.to_thread(self.sensor.expose, np.zeros((2, 2, 3), np.float32), 1e-3, 1.0,
+                                    self.mode.format, self.seed, 0)
         self._open = True
 
     async def close(self) -> None:
@@ -325,7 +327,7 @@ class SimCamera(Camera):
             eq = sc.base * np.float32(sc.scale) if sc.scale != 1.0 else sc.base
             static = self._render(lens, eq) * lens.vignetting_image()[..., None]
             static.flags.writeable = False
-            cols = lens.render_matrix(h).tocsc()
+            cols = lens.render_matrix(h).transpose()  # a light's columns, as rows
             self._static[key] = static
             self._columns[key] = cols
         out = static.copy()
@@ -343,7 +345,7 @@ class SimCamera(Camera):
             hit = self._light_images.get(pk)
             if hit is None:  # the light's sensor image per unit radiance: (pixels, weights)
                 rows, cc, frac = rasterize_disc(h, d, light.radius_rad)
-                img = (cols[:, rows * 2 * h + cc] @ frac).astype(np.float64)
+                img = cols.rows_combination(rows * 2 * h + cc, frac)
                 nz = np.flatnonzero(img)
                 hit = (nz, (img[nz] * vig[nz]).astype(np.float32))
                 if len(self._light_images) > 64:

@@ -36,12 +36,17 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from device.core.calibration import FisheyeModel, Vignetting
 from device.core.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
+
+from ._sparse import Csr
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 __all__ = ["DEFAULT_D", "SimLens", "make_lens", "standard_lens", "theta_d_prime"]
 
@@ -80,7 +85,7 @@ class SimLens:
     circle_deg: float = 187.0
     ring_deg: float = 1.0
     ring_transmission: float = 0.03
-    _cache: dict[tuple[int, int, bool], sp.csr_matrix] = field(default_factory=dict, repr=False, compare=False)
+    _cache: dict[tuple[int, int, bool], Csr] = field(default_factory=dict, repr=False, compare=False)
     _vig: list[np.ndarray] = field(default_factory=list, repr=False, compare=False)
     _omega: dict[int, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
@@ -190,7 +195,7 @@ class SimLens:
 
     # -- the render matrix ------------------------------------------------------------------------
     def render_matrix(self, eq_height: int, *, supersample: int | None = None,
-                      housing: bool = True, balance_iterations: int = 12) -> sp.csr_matrix:
+                      housing: bool = True, balance_iterations: int = 12) -> Csr:
         """CSR matrix (H*W, eq_height*2*eq_height) from equirect pixels to sensor radiance.
 
         Built from the overlap matrix ``A[p, j]`` (solid angle shared by sensor pixel ``p`` and
@@ -213,6 +218,8 @@ class SimLens:
         key = (eq_height, n, housing)
         if key in self._cache:
             return self._cache[key]
+        import scipy.sparse as sp  # building only: a frame applies the arrays (sim._sparse)
+
         keep, pu, pv = self._subsamples(n)
         # Overlap matrix, chunk by chunk of sensor pixels (bounded memory in large modes)
         parts, omega_p, t_p = [], np.zeros(keep.size), np.zeros(keep.size)
@@ -223,8 +230,8 @@ class SimLens:
         a = self._balance(sp.vstack(parts, format="csr"), omega_p, eq_height, balance_iterations)
         # M = diag(T_p / Omega_p) A, scattered to all sensor rows
         a = (sp.diags(t_p / np.where(omega_p > 0, omega_p, 1.0)) @ a).tocoo()
-        m = sp.csr_matrix((a.data.astype(np.float32), (keep[a.row], a.col)),
-                          shape=(h * w, 2 * eq_height * eq_height))
+        m = Csr.from_scipy(sp.csr_matrix((a.data.astype(np.float32), (keep[a.row], a.col)),
+                                         shape=(h * w, 2 * eq_height * eq_height)))
         self._cache[key] = m
         return m
 
@@ -235,6 +242,8 @@ class SimLens:
         Returns the CSR overlap (pixels x equirect pixels, sr), the pixels' solid angles and
         their housing transmissions.
         """
+        import scipy.sparse as sp
+
         n2 = pu.shape[1]
         eq_w = 2 * eq_height
         # Subsample directions and overlap weights a_s j_s (eq. J)
@@ -282,7 +291,7 @@ class SimLens:
         eq = np.ascontiguousarray(equirect, dtype=np.float32)
         m = self.render_matrix(eq.shape[0], **kw)  # type: ignore[arg-type]
         w, h = self.size
-        return np.asarray(m @ eq.reshape(-1, 3), dtype=np.float32).reshape(h, w, 3)
+        return m.matmul_rgb(eq.reshape(-1, 3)).reshape(h, w, 3)
 
     def vignetting_image(self) -> np.ndarray:
         """V at every pixel centre, (H, W) float32 (computed once, read-only)."""

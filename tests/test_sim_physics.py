@@ -117,6 +117,32 @@ def test_pixel_solid_angle_matches_the_lens_jacobian(vga_lens) -> None:  # type:
     assert np.all(np.diff(omega[240, 320:550]) < 0)
 
 
+def test_render_matrix_arrays_apply_as_scipy_does() -> None:
+    """The frame path's CSR loops (sim._sparse, no SciPy at run time) against SciPy on a random
+    matrix with empty rows and columns: the product, the transpose and a combination of rows."""
+    sp = pytest.importorskip("scipy.sparse")
+    from sim._sparse import Csr
+
+    rng = np.random.default_rng(7)
+    a = sp.random(300, 500, density=0.02, random_state=8, format="csr", dtype=np.float32)
+    a = (sp.diags((np.arange(300) != 5).astype(np.float32)) @ a).tocsr()  # row 5 empty
+    a.eliminate_zeros()
+    assert a.indptr[5] == a.indptr[6]
+    m = Csr.from_scipy(a)
+    x = rng.random((500, 3), dtype=np.float32) * 10
+    np.testing.assert_allclose(m.matmul_rgb(x), a.astype(np.float64) @ x, rtol=1e-6, atol=1e-6)
+    t = m.transpose()
+    at = a.T.tocsr()
+    assert t.shape == (500, 300)
+    np.testing.assert_array_equal(t.indptr, at.indptr)
+    np.testing.assert_array_equal(t.indices, at.indices)
+    np.testing.assert_array_equal(t.data, at.data)
+    rows, w = np.array([3, 3, 499, 17]), np.array([0.5, 1.5, 2.0, -1.0])
+    np.testing.assert_allclose(t.rows_combination(rows, w), at[rows].T.astype(np.float64) @ w, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="matmul_rgb"):
+        m.matmul_rgb(x[:10])
+
+
 # ---- sensor -------------------------------------------------------------------------------------
 @pytest.mark.parametrize(("mu", "fmt"), [(4.0, PixelFormat.RAW12), (40.0, PixelFormat.RAW12),
                                          (2500.0, PixelFormat.RAW12), (800.0, PixelFormat.RAW10)])
