@@ -18,25 +18,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from device.projection.kernels import _spmv_rgb  # the projection's own CSR x RGB
+
 __all__ = ["Csr"]
-
-
-@numba.njit(cache=True, nogil=True)
-def _spmm(indptr, indices, data, x, out):  # type: ignore[no-untyped-def]
-    """out[i, :] = sum_p data[p] x[indices[p], :] over row i's entries (x has 3 columns)."""
-    for i in range(indptr.shape[0] - 1):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        for p in range(indptr[i], indptr[i + 1]):
-            a = np.float64(data[p])
-            j = indices[p]
-            s0 += a * x[j, 0]
-            s1 += a * x[j, 1]
-            s2 += a * x[j, 2]
-        out[i, 0] = s0
-        out[i, 1] = s1
-        out[i, 2] = s2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -97,7 +81,7 @@ class Csr:
         if x.ndim != 2 or x.shape != (self.shape[1], 3):
             raise ValueError(f"matmul_rgb: x has shape {x.shape}, expected ({self.shape[1]}, 3)")
         out = np.empty((self.shape[0], 3), np.float32)
-        _spmm(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=np.float32), out)
+        _spmv_rgb(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=np.float32), out)
         return out
 
     def transpose(self) -> Csr:
