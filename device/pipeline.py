@@ -366,13 +366,20 @@ class Pipeline:
         assert fe is not None
         w, h = fe.image_size
         fmt = self.camera.mode.format
-        codes = np.zeros((w * h, 3), np.uint16 if fmt.is_raw else np.uint8)
+        img = np.zeros((h, w, 3), np.uint16 if fmt.is_raw else np.uint8)
+        codes = img.reshape(-1, 3)
         lut, dark = geo.lut(1e-3, 1.0, fmt)
         frame_to_map(geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark, geo.rows)
         # width set: the moving-lamp hold kernels load too
         # (and resum_every=1: the periodic re-summation's kernel too, not 256 frames in)
-        fused = RollingMerge(geo.rows, width=2 * geo.height, max_slots=2, resum_every=1).update(
-            (1e-3, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark)
+        merge = RollingMerge(geo.rows, width=2 * geo.height, max_slots=2, resum_every=1)
+        # and the tracker's: a small lamp off the zenith saturated in a long exposure (the top
+        # code), then measured by a short one (160, below the LUT's white of 255)
+        spot = img[h // 2 - 3:h // 2 + 3, w // 2 + h // 6 - 3:w // 2 + h // 6 + 3]
+        spot[:] = (1 << fmt.bit_depth) - 1 if fmt.is_raw else 255
+        merge.update((1e-2, 1.0), 0, geo.table, geo.geo_n, geo.mean_gain, codes, *geo.lut(1e-2, 1.0, fmt))
+        spot[:] = 160
+        fused = merge.update((1e-3, 1.0), 1, geo.table, geo.geo_n, geo.mean_gain, codes, lut, dark)
         geo.weighted_luminance(fused)
 
     def _warm_sampler(self) -> None:

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from device.projection.kernels import _spmv_rgb  # the projection's own CSR x RGB
+from device.core.sparse import spmv_rgb  # the projection's own CSR x RGB
 
-__all__ = ["Csr"]
+__all__ = ["Csr", "warm_kernels"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -81,7 +81,7 @@ class Csr:
         if x.ndim != 2 or x.shape != (self.shape[1], 3):
             raise ValueError(f"matmul_rgb: x has shape {x.shape}, expected ({self.shape[1]}, 3)")
         out = np.empty((self.shape[0], 3), np.float32)
-        _spmv_rgb(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=np.float32), out)
+        spmv_rgb(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=np.float32), out)
         return out
 
     def transpose(self) -> Csr:
@@ -99,3 +99,12 @@ class Csr:
         _rows_combination(self.indptr, self.indices, self.data, np.ascontiguousarray(rows, np.int64),
                           np.ascontiguousarray(weights, np.float64), out)
         return out
+
+
+def warm_kernels() -> None:
+    """Load the three loops' compiled code (numba's cache) for the arrays a render matrix has
+    (float32 values, int32 indices and row pointers; the transpose's row pointers int64), so
+    the first frame does not pay for it."""
+    m = Csr(np.ones(1, np.float32), np.zeros(1, np.int32), np.array([0, 1], np.int32), (1, 1))
+    m.matmul_rgb(np.ones((1, 3), np.float32))
+    m.transpose().rows_combination(np.zeros(1, np.int64), np.ones(1))

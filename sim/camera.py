@@ -157,9 +157,14 @@ class SimCamera(Camera):
             # load the sensor model's compiled kernels now (a driver is loaded before it
             # streams), so the first frame does not pay for them; off the loop (numba's first
             # call loads its CPU target: ~0.1 s)
-            await asyncio.to_thread(self.sensor.expose, np.zeros((2, 2, 3), np.float32), 1e-3, 1.0,
-                                    self.mode.format, self.seed, 0)
+            await asyncio.to_thread(self._warm_kernels)
         self._open = True
+
+    def _warm_kernels(self) -> None:
+        from ._sparse import warm_kernels
+
+        self.sensor.expose(np.zeros((2, 2, 3), np.float32), 1e-3, 1.0, self.mode.format, self.seed, 0)
+        warm_kernels()  # the render matrix's loops
 
     async def close(self) -> None:
         self._open = False

@@ -216,9 +216,9 @@ def test_numba_cache_dir_really_caches_the_service_kernels(tmp_path: Path) -> No
 
     root = Path(__file__).resolve().parent.parent
     code = ("import numpy as np\n"
-            "from device.projection.kernels import _spmv_rgb\n"
+            "from device.core.sparse import spmv_rgb\n"
             "out = np.zeros((1, 3), np.float32)\n"
-            "_spmv_rgb(np.array([0, 1], np.int32), np.array([0], np.int32), np.array([2.0], np.float32),"
+            "spmv_rgb(np.array([0, 1], np.int32), np.array([0], np.int32), np.array([2.0], np.float32),"
             " np.ones((1, 3), np.float32), out)\n"
             "assert out[0, 0] == 2.0\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "NUMBA_DEBUG_CACHE": "1",
@@ -228,7 +228,7 @@ def test_numba_cache_dir_really_caches_the_service_kernels(tmp_path: Path) -> No
     for r in runs:
         assert r.returncode == 0, r.stderr[-2000:]
     files = [p.name for p in (tmp_path / "numba").rglob("*") if p.suffix in (".nbi", ".nbc")]
-    assert any(f.startswith("kernels._spmv_rgb") for f in files), files
+    assert any(f.startswith("sparse.spmv_rgb") for f in files), files
     assert "data saved" in runs[0].stdout, runs[0].stdout[-2000:]
     assert "data loaded" in runs[1].stdout, runs[1].stdout[-2000:]
     assert "data saved" not in runs[1].stdout, runs[1].stdout[-2000:]

@@ -200,7 +200,7 @@ def _reconstruct(indptr, indices, vals, mu, resid, out):  # type: ignore[no-unty
     """A level's radiance at the working cells (``out``) from its lobes' amplitudes ``mu``, and
     the sums ``<resid, out>`` and ``<out, out>`` the step needs (equal cells: no weights).
 
-    The product is the projection's CSR x RGB (:func:`device.projection.kernels._spmv_rgb`), but
+    The product is the projection's CSR x RGB (:func:`device.core.sparse.spmv_rgb`), but
     parallel and with the step's sums fused: 1.1-1.3 ms per fit against 2.1 ms for that serial
     kernel plus two dot products (measured 2026-12-06, five levels, AMD VM), a fifth of the fit."""
     num = 0.0

@@ -1,4 +1,5 @@
-"""Per-frame kernels: CSR sparse matrix x RGB image, float32 in and out, float64 sums (numba).
+"""Per-frame kernels: the projection's repair of rows fed by bad pixels (numba); the CSR x RGB
+product itself is :func:`device.core.sparse.spmv_rgb`.
 
 Single-threaded on purpose: on the shared 2-core box numba's ``parallel=True`` pool was 10x
 slower than one thread under load (threads wait for a time slice); the three maps together are
@@ -14,30 +15,6 @@ import numpy as np
 # ------------------------------------------------------------------------------------------------
 # Per-frame kernels
 # ------------------------------------------------------------------------------------------------
-@numba.njit(cache=True, nogil=True)
-def _spmv_rgb(indptr, indices, data, x, out):  # pragma: no cover - compiled
-    """out[j] = sum_k data[k] x[indices[k]] for CSR rows j (3 channels, float64 sums), eq. (P).
-
-    Returns False if an output is not finite (a NaN/Inf input or float32 overflow)."""
-    ok = True
-    for j in range(indptr.size - 1):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for k in range(indptr[j], indptr[j + 1]):
-            i = indices[k]
-            w = data[k]
-            a0 += w * x[i, 0]
-            a1 += w * x[i, 1]
-            a2 += w * x[i, 2]
-        out[j, 0] = a0
-        out[j, 1] = a1
-        out[j, 2] = a2
-        if not (np.isfinite(out[j, 0]) and np.isfinite(out[j, 1]) and np.isfinite(out[j, 2])):
-            ok = False
-    return ok
-
-
 @numba.njit(cache=True, nogil=True)
 def _spmv_rgb_fix(indptr, indices, data, inv_gain, geo_sum, col_ptr, col_rows, x, valid, bad,
                   out):  # pragma: no cover - compiled

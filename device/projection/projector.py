@@ -15,8 +15,9 @@ import numpy as np
 from device.core.calibration import Calibration
 from device.core.errors import InputError
 from device.core.healpix import npix
+from device.core.sparse import spmv_rgb
 
-from .kernels import _spmv_rgb, _spmv_rgb_fix
+from .kernels import _spmv_rgb_fix
 from .tables import _TABLE_CACHE, _TABLE_CACHE_SIZE, _TABLE_KEEP, _build_all
 
 __all__ = ["LOWER_POLICIES", "LowerPolicy", "ProbeMaps", "Projector"]
@@ -200,7 +201,7 @@ class Projector:
         NaN or Inf) recomputed over their valid contributions."""
         t = self._tables[name]
         out = np.empty((t.indptr.size - 1, 3), np.float32)
-        finite = _spmv_rgb(t.indptr, t.indices, t.data, frame.x, out)
+        finite = spmv_rgb(t.indptr, t.indices, t.data, frame.x, out)
         if not finite and not frame.finite_checked:
             nonfinite = ~np.isfinite(frame.x).all(axis=1) & self.lens_mask.ravel()
             frame.finite_checked = True
