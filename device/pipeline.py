@@ -420,11 +420,13 @@ class Pipeline:
             else:
                 if geo.rows == self._geo.rows:  # same output pixels: the rolling estimate carries over
                     self._geo = geo
+                    if self._merge is not None:
+                        self._merge.sharing = geo.sharing
                     self._steps = 0  # its frames link kernels for its arrays: release after them
                     log.info("balanced projection table in use")
         if self._merge is None:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
-                                       max_slots=self.config.max_exposures + 2)
+                                       max_slots=self.config.max_exposures + 2, sharing=self._geo.sharing)
         if self._sampler is None:
             if self._sampler_warm is not None:
                 task = self._sampler_warm
@@ -637,6 +639,8 @@ class _Geometry:
     coarse blocks of the change test and the fusion LUTs per exposure."""
 
     def __init__(self, projector: Any, calibration: Calibration, height: int) -> None:
+        from device.projection import sample_sharing
+
         self.projector = projector
         self.calibration = calibration
         self.height = height
@@ -652,6 +656,7 @@ class _Geometry:
         self.inv_gain_out = np.where(geo_w > 0, np.bincount(row_of, d * ig * ig, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
         self.mean_gain = np.where(geo_w > 0, np.bincount(row_of, d, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
         self.geo_n = (d * ig).astype(np.float32)  # each entry's geometric weight (data / gain)
+        self.sharing = sample_sharing(ip, t.indices, d * ig, self.rows)  # (for the lamp tracker)
         omega = equirect_row_solid_angle(height)[: height // 2]
         self.solid_angle_out = np.repeat(omega, 2 * height)
         resp = calibration.response

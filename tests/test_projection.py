@@ -400,3 +400,26 @@ def test_the_table_builds_sparse_assembly_matches_scipy() -> None:
     np.testing.assert_array_equal(W2.indptr, ref2.indptr)
     np.testing.assert_array_equal(W2.indices, ref2.indices)
     np.testing.assert_allclose(W2.data, ref2.data, rtol=1e-14)
+
+
+def test_sample_sharing_splits_a_regions_variance_exactly() -> None:
+    """``sample_sharing``: output pixels that read the same fisheye pixels. Over a region holding
+    every reader of its fisheye pixels, ``sum_j var(L_j) k_j`` is the region's variance exactly
+    (independent unit-variance inputs); one reader per input gives 1; two equal readers 2."""
+    from device.projection import sample_sharing
+
+    rng = np.random.default_rng(5)
+    n_out, n_in = 40, 25
+    dense = rng.random((n_out, n_in)) * (rng.random((n_out, n_in)) < 0.2)
+    dense[np.arange(n_out), rng.integers(0, n_in, n_out)] += 0.5  # every row reads something
+    indptr = np.concatenate([[0], np.cumsum((dense > 0).sum(1))])
+    indices = np.nonzero(dense)[1]
+    k = sample_sharing(indptr, indices, dense[dense > 0], n_out)
+    a = dense / dense.sum(1, keepdims=True)
+    region_var = float((a.sum(0) ** 2).sum())  # var(sum_j L_j), L = a x, var x_i = 1
+    assert np.isclose(float(((a**2).sum(1) * k).sum()), region_var, rtol=1e-12)
+    assert np.all(k >= 1 - 1e-12)
+    eye = np.arange(6)
+    assert np.allclose(sample_sharing(np.arange(7), eye, np.ones(6), 6), 1.0)
+    pairs = np.array([0, 2, 4, 6])  # rows 0 and 1 read inputs 0 and 1; row 2 alone reads 2 and 3
+    assert np.allclose(sample_sharing(pairs, np.array([0, 1, 0, 1, 2, 3]), np.ones(6), 3), [2.0, 2.0, 1.0])

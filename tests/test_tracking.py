@@ -168,3 +168,34 @@ def test_a_static_lamps_energy_is_filtered_over_its_measurements_and_a_switch_re
     # the step: the first frame that measures it publishes it as measured
     assert abs(measured[40] / raw[40] - 1) < 1e-4
     assert abs(measured[40] / (1.5 * true) - 1) < 0.05
+
+
+def test_the_energy_gate_counts_output_pixels_that_share_fisheye_pixels() -> None:
+    """Output pixels in pairs that read the same fisheye pixels (one noise draw per pair): a lamp's
+    energy scatters sqrt(2) x more than its pixels' variances summed say. Told so (``sharing``
+    2), the filter keeps averaging (a 3-sigma gate resets about as rarely as on a Gaussian);
+    not told, a static lamp's filter resets several times as often."""
+    rng = np.random.default_rng(11)
+    sigma = 0.03
+    excess = _lamp_map(20.0).astype(np.float64) - BG
+    prec = (1.0 / (sigma * excess + 1e-3) ** 2).reshape(-1, 3)
+    noise = [rng.standard_normal((ROWS, WIDTH // 2, 1)).repeat(2, axis=1) for _ in range(300)]
+
+    sat = np.zeros((ROWS, WIDTH), bool)
+    sat[10:15, 18:23] = True
+
+    def resets(sharing: np.ndarray | None) -> int:
+        t = LampTracker(WIDTH, k_sigma=3.0)
+        n = 0
+        for k, z in enumerate(noise):
+            noisy = (BG + excess * (1 + sigma * z)).astype(np.float32).reshape(-1, 3)
+            flat = noisy.copy()
+            t.update(2 * k, flat, np.zeros(ROWS * WIDTH, bool), precision=prec, sharing=sharing)
+            # a reset publishes the measurement as it is (scale 1); a filtered one is rescaled
+            n += k > 1 and bool(np.array_equal(flat, noisy))
+            t.update(2 * k + 1, noisy.copy(), sat.reshape(-1), precision=prec, sharing=sharing)  # a long frame
+        return n
+
+    told, untold = resets(np.full(ROWS * WIDTH, 2.0)), resets(None)
+    assert told <= 3, told
+    assert untold >= 3 * max(told, 2), (told, untold)

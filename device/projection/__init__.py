@@ -73,6 +73,7 @@ from .geometry import (
     spherical_triangle_solid_angle,
 )
 from .projector import LOWER_POLICIES, LowerPolicy, ProbeMaps, Projector
+from .tables import sample_sharing
 
 __all__ = [
     "LOWER_POLICIES",
@@ -82,5 +83,6 @@ __all__ = [
     "fisheye_pixel_directions",
     "fisheye_pixel_solid_angles",
     "fisheye_valid_mask",
+    "sample_sharing",
     "spherical_triangle_solid_angle",
 ]

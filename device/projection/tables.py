@@ -409,3 +409,32 @@ def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside:
     for a in arrays:
         a.flags.writeable = False
     return _Built(valid, gain, inv_gain, omega_pix.reshape(h, w), tables)
+
+
+# ------------------------------------------------------------------------------------------------
+# What a table's rows share
+# ------------------------------------------------------------------------------------------------
+def sample_sharing(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray, rows: int) -> np.ndarray:
+    """Per output pixel ``j`` of a table's first ``rows`` rows, how much a sum over a region of
+    output pixels varies more than the sum of their variances says, because neighbouring output
+    pixels read the same fisheye pixels (``rows``,) float64, >= 1 where a row has entries.
+
+    With ``a[j, i]`` the row-normalised weights (``L_j = sum_i a[j, i] x_i``) and independent
+    fisheye pixels of equal variance, ``var L_j = s2 sum_i a[j, i]^2``, while a region that holds
+    every output pixel reading fisheye pixel ``i`` takes ``c_i = sum_j a[j, i]`` of it, so the
+    region's sum has variance ``s2 sum_i c_i^2``. Handing each ``c_i^2`` to the rows in proportion
+    to ``a[j, i] / c_i``: ``var(region) = sum_j var L_j k_j`` with
+    ``k_j = sum_i a[j, i] c_i / sum_i a[j, i]^2``. Near the horizon of a fisheye probe's
+    equirect map ``k ~ 1.3``; towards the zenith, where a row of 512 output pixels reads a few
+    dozen fisheye pixels, it grows to 4-6 (16 rows down) and past 100 (the first row)."""
+    ip = np.asarray(indptr[: rows + 1], np.int64)
+    n = int(ip[-1])
+    idx = np.asarray(indices[:n], np.int64)
+    w = np.asarray(weights[:n], np.float64)
+    row_of = np.repeat(np.arange(rows), np.diff(ip))
+    total = np.bincount(row_of, w, rows)
+    a = w / np.maximum(total[row_of], 1e-300)
+    col = np.bincount(idx, a, int(idx.max()) + 1 if n else 0)
+    num = np.bincount(row_of, a * col[idx], rows)
+    den = np.bincount(row_of, a * a, rows)
+    return np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
