@@ -16,22 +16,31 @@ The filter (Karis 2013's split-sum prefilter, ``n = v = r``): texel value
 alone, so the denominator is a per-mip constant (a 1-D integral, computed once). Mip 0 (roughness
 0, a delta) is the map itself, sampled bilinearly at texel centres.
 
-Evaluation: exact up to a controlled approximation, no Monte Carlo noise. The map becomes a
-pyramid of points (128 x 256 at most, then 2 x 2 merges down to 4 x 8), each holding its power
-(radiance x solid angle, float64), luminance power, and the luminance-weighted mean direction
-``E[l]`` and second moment ``E[l l^T]`` of its pixels. Each output direction walks the pyramid
-from the top (a Barnes-Hut descent): a cell is opened into its four children when it lies within
-``NEAR`` lobe half-widths plus ``MARGIN`` cell radii, subtends more than half its distance, or
-(rough lobes) straddles the direction's horizon; otherwise it counts as one point with
-``E[w] ~ w(c) + w''(c) var(c) / 2`` (``c = n . E[l]``, ``var`` from the second moment), and
-``g(c) E[max(c, 0)]`` under a normal ``c`` within three deviations of the clamp. The near field
-is opened down to the coarsest level whose cells are at most ``FINE_FRACTION`` of the lobe
-half-width (64 rows for roughness 0.25, 4 rows for roughness 1); only cells across the horizon
-go deeper, where the clamp's kink needs them: to 64 rows when the lobe's weight at the horizon is
-large (``w'(0) / w(1) = 4 alpha^4 >= 0.1``, roughness >= 0.75), to 32 rows when it is small but
-not negligible (``>= 1e-3``). Black cells (the probe's lower hemisphere) are skipped. The tests
-hold every mip within 1% of the brute-force integral over the map's own pixels (measured worst
-0.92% over six maps, sphere and hemisphere, in mip 1).
+Evaluation: exact at grid points up to a truncation in azimuthal frequency, no Monte Carlo
+noise. The weight depends on ``n . l`` alone, so between an output row at polar angle
+``theta_i`` and a source row ``theta_j`` of equirect grids it depends only on the difference of
+their longitudes: the filter is a circular convolution along each row pair, i.e. one real
+(rows x source rows) matrix per azimuthal frequency ``m`` (:func:`_kernel_spectra`, made once per
+mip and source size and kept by the filter) applied to the source rows' spectra (one ``rfft``
+of the map per frame, shared by every mip):
+``Y[m, i] = sum_j K[m, i, j] X[j, m]``; an inverse ``rfft`` of ``Y`` gives the mip on an
+equirect grid of output directions, from which each texel is read with Catmull-Rom weights
+(across a pole, the row beyond it half a turn away). Per mip, from the lobe's half-width ``hw``
+(GGX, in l, ``2 atan(0.64 alpha)``): grid rows ``>= GRID_PER_LOBE pi / hw`` (a power of two,
+16 .. 256: 128 for roughness 0.25, 16 for 0.75 and 1), frequencies ``FREQ_PER_LOBE / hw``
+but at least ``MIN_FREQS`` (82 for roughness 0.25, 48 above).
+
+What the grid cannot carry is taken apart: the ``BRIGHT`` pixels of most power (a sun, a
+lamp) leave the map before its ``rfft`` and are summed exactly at every texel from their own
+directions (:func:`_add_points`). Through the grid, a sun would put the clamp ``max(n . l, 0)``
+- a kink along the great circle 90 degrees from it - and the narrow lobe of roughness 0.25
+between grid points, where interpolation cannot follow them (7-160% in the rough mips, 1.4-2.6%
+in mip 1, measured); what remains of the map is spread enough that its kinks are smoothed over.
+Maps of more than ``MAX_SOURCE`` rows are averaged 2 x 2 first (that moves a pixel's power up
+to a quarter of a source pixel); black rows (a probe's lower hemisphere) are left out of the
+transform and the products. The tests hold every mip within 1% of the brute-force integral over
+the map's own pixels (measured worst 0.91%, dikhololo's probe hemisphere in mip 3; 0.03-0.09% in
+mip 1).
 """
 
 from __future__ import annotations
@@ -50,13 +59,11 @@ __all__ = ["FACES", "FACE_NAMES", "Cubemap", "CubemapFilter", "face_directions",
 
 FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 FACE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")  # the same faces in file and URL names
-FINE_HEIGHT = 128
-FINE_FRACTION = 0.7  # finest points at most this share of the lobe half-width
-NEAR = 2.0  # cells within this many lobe half-widths of a direction are opened
-MIN_FINE = 4  # the near field's finest level is never coarser than this
-HORIZON = True  # open cells across a direction's horizon (rough lobes) ...
-HORIZON_LEVELS = ((0.1, 64), (1e-3, 32))  # ... down to this height where 4 alpha^4 >= the bound
-MARGIN = 1.0  # the near field reaches this many cell radii beyond NEAR half-widths
+MAX_SOURCE = 512  # source rows at most (larger maps are averaged 2 x 2 down to this)
+BRIGHT = 512  # the brightest pixels, summed exactly at each texel
+GRID_PER_LOBE = 3.2  # output grid cells per lobe half-width (at least)
+FREQ_PER_LOBE = 6.4  # azimuthal frequencies kept: this / the half-width in radians ...
+MIN_FREQS = 48  # ... and never fewer (the clamp max(n . l, 0) is a kink in the rough lobes)
 
 
 def face_directions(n: int) -> np.ndarray:
@@ -133,141 +140,149 @@ def sample_equirect(equirect: np.ndarray, d: np.ndarray) -> np.ndarray:
     return ((1 - fy) * ((1 - fx) * m[ya, xa] + fx * m[ya, xb]) + fy * ((1 - fx) * m[yb, xa] + fx * m[yb, xb]))
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _pixel_points(equirect: np.ndarray, omega_row: np.ndarray, f: int, pw: np.ndarray,
-                  cen: np.ndarray, mom: np.ndarray, lum: np.ndarray) -> None:  # pragma: no cover
-    """Finest points: f x f blocks of the map -> power, luminance power, and luminance-weighted
-    sums of directions and of their outer products (xx, yy, zz, xy, xz, yz), each (h/f, 2h/f, .)
-    (non-finite and negative values count as 0). Block rows in parallel; the columns' sines and
-    cosines from one table."""
-    h, w = equirect.shape[0], equirect.shape[1]
-    sp = np.empty(w)
-    cp = np.empty(w)
-    for c in range(w):
-        p = 2.0 * math.pi * (c + 0.5) / w
-        sp[c] = math.sin(p)
-        cp[c] = math.cos(p)
-    for i in numba.prange(h // f):
-        for j in range(w // f):
-            pw[i, j, :] = 0.0
-            cen[i, j, :] = 0.0
-            mom[i, j, :] = 0.0
-            lum[i, j] = 0.0
-        for r in range(i * f, (i + 1) * f):
-            t = math.pi * (r + 0.5) / h
-            st, ct = math.sin(t), math.cos(t)
-            om = omega_row[r]
-            for c in range(w):
-                red, grn, blu = equirect[r, c, 0], equirect[r, c, 1], equirect[r, c, 2]
-                red = red if red > 0.0 and red < math.inf else 0.0
-                grn = grn if grn > 0.0 and grn < math.inf else 0.0
-                blu = blu if blu > 0.0 and blu < math.inf else 0.0
-                y = LUM_R * red + LUM_G * grn + LUM_B * blu
-                if y <= 0.0:
-                    continue
-                j = c // f
-                pw[i, j, 0] += red * om
-                pw[i, j, 1] += grn * om
-                pw[i, j, 2] += blu * om
-                yo = y * om
-                dx, dy, dz = st * sp[c], ct, -st * cp[c]
-                lum[i, j] += yo
-                cen[i, j, 0] += yo * dx
-                cen[i, j, 1] += yo * dy
-                cen[i, j, 2] += yo * dz
-                mom[i, j, 0] += yo * dx * dx
-                mom[i, j, 1] += yo * dy * dy
-                mom[i, j, 2] += yo * dz * dz
-                mom[i, j, 3] += yo * dx * dy
-                mom[i, j, 4] += yo * dx * dz
-                mom[i, j, 5] += yo * dy * dz
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _expected_weight(nx: float, ny: float, nz: float, m: np.ndarray, s: np.ndarray,
-                     k0: float, q: float) -> float:  # pragma: no cover - compiled
-    """E[w(n . l)] over a point's pixels, ``w(c) = g(c) max(c, 0)``, ``g(c) = k0 / (1 + q (1 + c))^2``,
-    from the point's moments: ``c = n . E[l]``, ``var(c) = n^T E[l l^T] n - c^2``.
-    Away from the clamp, to second order: ``w(c) + w''(c) var / 2``. Within three standard
-    deviations of it, the clamp is taken in expectation with ``c`` normal:
-    ``g(c) E[max(c, 0)] = g(c) (c Phi(c / sd) + sd phi(c / sd))``."""
-    c = nx * m[0] + ny * m[1] + nz * m[2]
-    var = (nx * nx * s[0] + ny * ny * s[1] + nz * nz * s[2]
-           + 2.0 * (nx * ny * s[3] + nx * nz * s[4] + ny * nz * s[5])) - c * c
-    sd = math.sqrt(var) if var > 0.0 else 0.0
-    if c < 3.0 * sd:
-        if c < -3.0 * sd or sd <= 0.0:
-            return 0.0
-        den = 1.0 + q * (1.0 + c)
-        z = c / sd
-        clamp = c * 0.5 * math.erfc(-z * 0.7071067811865476) + sd * 0.3989422804014327 * math.exp(-0.5 * z * z)
-        return k0 / (den * den) * clamp
-    den = 1.0 + q * (1.0 + c)
-    inv = 1.0 / den
-    w = k0 * c * inv * inv
-    if var > 0.0:
-        w2 = k0 * inv * inv * inv * (-4.0 * q + 6.0 * c * q * q * inv)
-        w += 0.5 * w2 * var
-        if w < 0.0:
-            w = 0.0
-    return w
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _prefilter_kernel(out_dirs: np.ndarray, alpha: float, inv_norm: float, open_cos: np.ndarray,
-                      horizon_sin: np.ndarray, heights: np.ndarray, offsets: np.ndarray, mean: np.ndarray,
-                      mom: np.ndarray, pw: np.ndarray, lum: np.ndarray,
-                      out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Each output direction walks the point pyramid from its coarsest level (a Barnes-Hut
-    descent): a cell of level k is taken as one point (its moments) unless ``n . E[l] >
-    open_cos[k]`` (it lies within the near field or subtends too much of its distance, see
-    :meth:`CubemapFilter._opening`) or ``|n . E[l]| < horizon_sin[k]`` (it straddles the
-    direction's horizon); then its four children are visited. Cells of the finest level are always
-    points. Levels are stored flat, coarsest first: level k has ``heights[k] x 2 heights[k]``
-    cells from ``offsets[k]``."""
+@numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+def _add_points(dirs: np.ndarray, pts: np.ndarray, power: np.ndarray, alpha: float, inv_norm: float,
+                out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out[i] += sum_k w(dirs[i] . pts[:, k]) power[:, k] / norm``: the brightest pixels,
+    each at its own direction (``w`` of :func:`ggx_weight`; ``pts`` (3, k) and ``power`` (3, k),
+    component-major so the inner loop vectorises). Texels in parallel."""
     a2 = alpha * alpha
-    k0 = a2 / math.pi
+    k0 = a2 / math.pi * inv_norm
     q = 0.5 * (a2 - 1.0)
-    nlev = heights.shape[0]
-    for i in numba.prange(out_dirs.shape[0]):
-        nx, ny, nz = out_dirs[i, 0], out_dirs[i, 1], out_dirs[i, 2]
+    px, py, pz = pts[0], pts[1], pts[2]
+    pr, pg, pb = power[0], power[1], power[2]
+    for i in numba.prange(dirs.shape[0]):
+        nx, ny, nz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
         r = 0.0
         g = 0.0
         b = 0.0
-        stack_l = np.empty(256, np.int64)
-        stack_k = np.empty(256, np.int64)
-        top = 0
-        h0 = heights[0]
-        for kk in range(2 * h0 * h0):
-            stack_l[top], stack_k[top] = 0, kk
-            top += 1
-        while top > 0:
-            top -= 1
-            lv, kk = stack_l[top], stack_k[top]
-            k = offsets[lv] + kk
-            if lum[k] <= 0.0:
-                continue
-            m = mean[k]
-            c = nx * m[0] + ny * m[1] + nz * m[2]
-            if lv + 1 < nlev and (c > open_cos[lv] or abs(c) < horizon_sin[lv]):
-                h = heights[lv]
-                rr, cc = kk // (2 * h), kk % (2 * h)
-                w2 = 4 * h
-                base = 2 * rr * w2 + 2 * cc
-                stack_l[top], stack_k[top] = lv + 1, base
-                stack_l[top + 1], stack_k[top + 1] = lv + 1, base + 1
-                stack_l[top + 2], stack_k[top + 2] = lv + 1, base + w2
-                stack_l[top + 3], stack_k[top + 3] = lv + 1, base + w2 + 1
-                top += 4
-                continue
-            wt = _expected_weight(nx, ny, nz, m, mom[k], k0, q)
-            if wt > 0.0:
-                r += wt * pw[k, 0]
-                g += wt * pw[k, 1]
-                b += wt * pw[k, 2]
-        out[i, 0] = r * inv_norm
-        out[i, 1] = g * inv_norm
-        out[i, 2] = b * inv_norm
+        for k in range(px.shape[0]):
+            c = max(nx * px[k] + ny * py[k] + nz * pz[k], 0.0)
+            den = 1.0 + q * (1.0 + c)
+            wt = k0 * c / (den * den)
+            r += wt * pr[k]
+            g += wt * pg[k]
+            b += wt * pb[k]
+        out[i, 0] += r
+        out[i, 1] += g
+        out[i, 2] += b
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _gather(flat: np.ndarray, idx: np.ndarray, wts: np.ndarray, clean: bool,
+            out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out[i] = sum_k wts[i, k] flat[idx[i, k]]`` (rows of 3); with ``clean``, non-finite and
+    negative values read as 0. Texels in parallel."""
+    for i in numba.prange(idx.shape[0]):
+        r = 0.0
+        g = 0.0
+        b = 0.0
+        for k in range(idx.shape[1]):
+            j = idx[i, k]
+            wt = wts[i, k]
+            x, y, z = flat[j, 0], flat[j, 1], flat[j, 2]
+            if clean:
+                x = x if x > 0.0 and x < math.inf else 0.0
+                y = y if y > 0.0 and y < math.inf else 0.0
+                z = z if z > 0.0 and z < math.inf else 0.0
+            r += wt * x
+            g += wt * y
+            b += wt * z
+        out[i, 0] = r
+        out[i, 1] = g
+        out[i, 2] = b
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _clean_power(a: np.ndarray, omega_row: np.ndarray, src: np.ndarray,
+                 power: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``src``: ``a`` with non-finite and negative values 0; ``power``: its luminance x the
+    row's solid angle per pixel. Rows in parallel."""
+    for i in numba.prange(a.shape[0]):
+        om = omega_row[i]
+        for j in range(a.shape[1]):
+            red, grn, blu = a[i, j, 0], a[i, j, 1], a[i, j, 2]
+            red = red if red > 0.0 and red < math.inf else 0.0
+            grn = grn if grn > 0.0 and grn < math.inf else 0.0
+            blu = blu if blu > 0.0 and blu < math.inf else 0.0
+            src[i, j, 0] = red
+            src[i, j, 1] = grn
+            src[i, j, 2] = blu
+            power[i, j] = (LUM_R * red + LUM_G * grn + LUM_B * blu) * om
+
+
+def _kernel_spectra(alpha: float, norm: float, height: int, rows: int, freqs: int, j0: int,
+                    j1: int) -> np.ndarray:
+    """``K[m, i, j]`` (float32, ``(freqs + 1, rows, j1 - j0)``): the real DFT, over the column
+    offset ``q`` of a ``(height, 2 height)`` source grid, of ``w(n_i . l_jq) omega_j / norm``,
+    ``n_i`` at the centre of output row ``i`` of ``rows`` (column 0), ``l_jq`` at the centre of
+    source row ``j0 + j``, ``q`` columns away. Real: the weight is even in the offset."""
+    w = 2 * height
+    ts = math.pi * (np.arange(j0, j1) + 0.5) / height
+    cos_dphi = np.cos(2.0 * math.pi * np.arange(w) / w)
+    scale = (equirect_row_solid_angle(height, w)[j0:j1] / norm)[:, None]
+    out = np.empty((freqs + 1, rows, j1 - j0), np.float32)
+    for i in range(rows):
+        t = math.pi * (i + 0.5) / rows
+        c = (math.cos(t) * np.cos(ts))[:, None] + (math.sin(t) * np.sin(ts))[:, None] * cos_dphi[None, :]
+        out[:, i, :] = np.fft.rfft(ggx_weight(c, alpha) * scale, axis=1)[:, : freqs + 1].real.T
+    return out
+
+
+def _cubic_taps(rows: int, cols: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (n, 16) and weights (n, 16) of a Catmull-Rom lookup at directions (n, 3) in a
+    (rows, cols) equirect grid of cell centres; beyond a pole, row ``-1 - r`` half a turn away."""
+    from device.core.sphere import angles_from_directions
+
+    theta, phi = angles_from_directions(d)
+    y = theta / math.pi * rows - 0.5
+    x = phi / (2 * math.pi) * cols - 0.5
+    y0 = np.floor(y).astype(np.int64)
+    x0 = np.floor(x).astype(np.int64)
+
+    def weights(f: np.ndarray) -> np.ndarray:
+        f2, f3 = f * f, f * f * f
+        return np.stack([-0.5 * f3 + f2 - 0.5 * f, 1.5 * f3 - 2.5 * f2 + 1.0, -1.5 * f3 + 2.0 * f2 + 0.5 * f,
+                         0.5 * f3 - 0.5 * f2], -1)
+
+    wy, wx = weights(y - y0), weights(x - x0)
+    r = y0[:, None] + np.arange(-1, 3)[None, :]  # (n, 4)
+    c = x0[:, None] + np.arange(-1, 3)[None, :]
+    over = (r < 0) | (r >= rows)
+    rr = np.where(r < 0, -1 - r, np.where(r >= rows, 2 * rows - 1 - r, r))
+    idx = rr[:, :, None] * cols + (c[:, None, :] + np.where(over, cols // 2, 0)[:, :, None]) % cols
+    return idx.reshape(-1, 16), (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16).astype(np.float32)
+
+
+def _source(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The map as the filter's source, float32, non-finite and negative values 0, averaged 2 x 2
+    down to at most ``MAX_SOURCE`` rows; and its power per pixel (luminance x solid angle)."""
+    a = np.ascontiguousarray(a, np.float32)
+    while a.shape[0] > MAX_SOURCE:
+        h, w = a.shape[0] // 2, a.shape[1] // 2
+        a = np.where(np.isfinite(a) & (a > 0), a, 0)[: 2 * h, : 2 * w].reshape(h, 2, w, 2, 3).mean(axis=(1, 3))
+    h, w = a.shape[:2]
+    src = np.empty((h, w, 3), np.float32)
+    power = np.empty((h, w), np.float32)
+    _clean_power(a, equirect_row_solid_angle(h, w), src, power)
+    return src, power
+
+
+def _take_brightest(src: np.ndarray, power: np.ndarray, count: int, j0: int,
+                    j1: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` pixels of most power (among rows ``j0 .. j1``, the rest is black): their
+    directions and powers (3, k) float64, taken out of ``src`` (set to 0 there)."""
+    from device.core.sphere import directions_from_angles
+
+    h, w = src.shape[:2]
+    flat = power[j0:j1].reshape(-1)
+    idx = np.argpartition(flat, -count)[-count:] if count < flat.size else np.arange(flat.size)
+    idx = idx[flat[idx] > 0]
+    r, c = j0 + idx // w, idx % w
+    pts = directions_from_angles(math.pi * (r + 0.5) / h, 2.0 * math.pi * (c + 0.5) / w)
+    pw = src[r, c].astype(np.float64) * equirect_row_solid_angle(h, w)[r][:, None]
+    src[r, c] = 0.0
+    return np.ascontiguousarray(pts.T, np.float64), np.ascontiguousarray(pw.T)
 
 
 @dataclass
@@ -280,74 +295,6 @@ class Cubemap:
     @property
     def size(self) -> int:
         return int(self.mips[0].shape[1])
-
-
-@dataclass
-class _Level:
-    """Points of one pyramid level: power (h, 2h, 3), luminance power (h, 2h), and the
-    luminance-weighted means of the direction (h, 2h, 3) and of its outer product (h, 2h, 6)."""
-
-    pw: np.ndarray
-    lum: np.ndarray
-    mean: np.ndarray
-    mom: np.ndarray
-
-    @property
-    def height(self) -> int:
-        return int(self.lum.shape[0])
-
-
-def _mean(total: np.ndarray, lum: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(total / np.where(lum > 0, lum, 1.0)[..., None])
-
-
-def _pyramid(equirect: np.ndarray, top: int = FINE_HEIGHT) -> dict[int, _Level]:
-    """Points of the map at heights top, top/2, ... 2 (keyed by height)."""
-    h, w = equirect.shape[:2]
-    hf = min(top, h)
-    while h % hf:
-        hf //= 2
-    f = h // hf
-    pw = np.empty((hf, 2 * hf, 3))
-    cen = np.empty((hf, 2 * hf, 3))
-    mom = np.empty((hf, 2 * hf, 6))
-    lum = np.empty((hf, 2 * hf))
-    _pixel_points(np.ascontiguousarray(equirect, np.float32), equirect_row_solid_angle(h, w), f,
-                  pw, cen, mom, lum)
-    out = {hf: _Level(pw, lum, _mean(cen, lum), _mean(mom, lum))}
-    while pw.shape[0] >= 4:  # the sums merge 2 x 2; the means follow from them
-        pw, lum, cen, mom = (_down(a) for a in (pw, lum, cen, mom))
-        out[pw.shape[0]] = _Level(pw, lum, _mean(cen, lum), _mean(mom, lum))
-    return out
-
-
-def _down(a: np.ndarray) -> np.ndarray:
-    if a.ndim == 2:
-        return _down_sum(a[..., None])[..., 0]
-    return _down_sum(a)
-
-
-@numba.njit(cache=True, nogil=True)
-def _down_sum(a: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """2 x 2 block sums of an (h, w, k) array (numpy's strided reductions cost 5 x this)."""
-    h, w, k = a.shape
-    out = np.zeros((h // 2, w // 2, k))
-    for i in range(h // 2):
-        for j in range(w // 2):
-            for q in range(k):
-                out[i, j, q] = (a[2 * i, 2 * j, q] + a[2 * i, 2 * j + 1, q]
-                                + a[2 * i + 1, 2 * j, q] + a[2 * i + 1, 2 * j + 1, q])
-    return out
-
-
-def _flat_pyramid(pyr: dict[int, _Level]) -> tuple[np.ndarray, ...]:
-    """Levels of height >= 4, coarsest first, as flat arrays for the kernel: (heights,
-    offsets, mean (n, 3), mom (n, 6), pw (n, 3), lum (n,))."""
-    hs = sorted(h for h in pyr if h >= 4) or [max(pyr)]
-    offs = np.cumsum([0] + [2 * h * h for h in hs[:-1]]).astype(np.int64)
-    cat = [np.ascontiguousarray(np.concatenate([getattr(pyr[h], name).reshape(2 * h * h, -1) for h in hs]))
-           for name in ("mean", "mom", "pw", "lum")]
-    return (np.array(hs, np.int64), offs, cat[0], cat[1], cat[2], cat[3].reshape(-1))
 
 
 class CubemapFilter:
@@ -368,53 +315,76 @@ class CubemapFilter:
         self._alpha = [max(r * r, 1e-4) for r in self.roughness]
         self._norm = [ggx_normaliser(a) for a in self._alpha]
         self._bilinear: tuple[tuple[int, int], tuple[np.ndarray, np.ndarray]] | None = None
+        # (mip, source height) -> (first row, end row, _kernel_spectra of those source rows)
+        self._tables: dict[tuple[int, int], tuple[int, int, np.ndarray]] = {}
+        self._grid_taps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
-    def _plan(self, m: int) -> tuple[int, float, int]:
-        """For mip ``m``: the near field's finest pyramid height (cells at most ``FINE_FRACTION``
-        of the lobe's half-width, GGX half-width in l ~ 2 atan(0.64 alpha)), the near angle
-        (``NEAR`` half-widths), and the height down to which cells across the horizon are opened
-        (0: none), from the lobe's weight at the horizon ``w'(0) / w(1) = 4 alpha^4``."""
+    def _plan(self, m: int, width: int) -> tuple[int, int, int]:
+        """Mip ``m``'s output grid and frequencies for a source ``width`` columns wide: rows
+        (a power of two, cells at most 1 / ``GRID_PER_LOBE`` of the lobe's half-width, GGX
+        half-width in l ~ 2 atan(0.64 alpha); 16 .. 256), the azimuthal frequencies kept
+        (``FREQ_PER_LOBE`` / half-width, at least ``MIN_FREQS``, below the source's Nyquist) and
+        the grid's columns (>= 2 rows, holding every kept frequency)."""
         half = 2.0 * math.atan(0.64 * self._alpha[m])
-        fine = FINE_HEIGHT
-        while fine > MIN_FINE and math.pi / (fine // 2) <= FINE_FRACTION * half:
-            fine //= 2
-        edge = 4.0 * self._alpha[m] ** 4
-        horizon = next((h for bound, h in HORIZON_LEVELS if edge >= bound), 0) if HORIZON else 0
-        return fine, NEAR * half, horizon
+        rows = min(max(1 << max(0, math.ceil(math.log2(math.pi * GRID_PER_LOBE / half))), 16), 256)
+        freqs = min(max(math.ceil(FREQ_PER_LOBE / half), MIN_FREQS), width // 2 - 1)
+        return rows, freqs, max(2 * rows, 2 * (freqs + 1))
+
+    def _spectra(self, m: int, height: int, j0: int, j1: int) -> np.ndarray:
+        """Mip ``m``'s :func:`_kernel_spectra` for source rows ``j0 .. j1`` (a probe's maps are
+        black below the horizon: half the table), kept for the last rows asked."""
+        key = (m, height)
+        hit = self._tables.get(key)
+        if hit is None or hit[0] > j0 or hit[1] < j1:
+            rows, freqs, _ = self._plan(m, 2 * height)
+            hit = (j0, j1, _kernel_spectra(self._alpha[m], self._norm[m], height, rows, freqs, j0, j1))
+            self._tables[key] = hit
+        return hit[2][:, :, j0 - hit[0]: j1 - hit[0]]
+
+    def _taps(self, m: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        key = (m, height)
+        if key not in self._grid_taps:
+            rows, _, cols = self._plan(m, 2 * height)
+            self._grid_taps[key] = _cubic_taps(rows, cols, self._dirs[m].reshape(-1, 3))
+        return self._grid_taps[key]
 
     @staticmethod
-    def _opening(heights: np.ndarray, fine: int, near: float, horizon: int) -> tuple[np.ndarray, np.ndarray]:
-        """Per level, the opening tests without an arccos per cell: a cell of angular radius
-        ``rho`` (bound ``sqrt(2) pi / h``) at angle ``acos(n . E[l])`` is opened when that angle
-        is below ``max(near + MARGIN rho, 2 rho)`` (within the near field, or subtending more
-        than half its distance), i.e. ``n . E[l] > cos(that)``, on levels coarser than ``fine``;
-        and when it straddles the horizon, ``|n . E[l]| < sin(rho)``, on levels coarser than
-        ``horizon``."""
-        rho = math.sqrt(2.0) * math.pi / heights.astype(np.float64)
-        limit = np.maximum(near + MARGIN * rho, 2.0 * rho)
-        open_cos = np.where(limit >= math.pi, -2.0, np.cos(np.minimum(limit, math.pi)))
-        open_cos = np.where(heights >= fine, 2.0, open_cos)
-        horizon_sin = np.where(heights < horizon, np.sin(np.minimum(rho, math.pi / 2)), -1.0)
-        return open_cos, horizon_sin
+    def _shift(freqs: int, cols: int, width: int) -> np.ndarray:
+        return np.exp(1j * math.pi * np.arange(freqs + 1) * (1.0 / cols - 1.0 / width)).astype(np.complex64)
 
     def filter(self, equirect: np.ndarray) -> Cubemap:
         a = np.asarray(equirect)
         if a.ndim != 3 or a.shape[2] != 3 or a.shape[1] != 2 * a.shape[0]:
             raise InputError(f"expected an (H, 2H, 3) equirect map, got shape {a.shape}", param="equirect")
         mips = [self._mip0(a)]
-        if self.levels > 1:
-            flat = _flat_pyramid(_pyramid(a))
-            heights, offsets = flat[0], flat[1]
-            for m in range(1, self.levels):
-                dirs = self._dirs[m].reshape(-1, 3)
+        if self.levels == 1:
+            return Cubemap(mips, list(self.roughness))
+        src, power = _source(a)
+        h, w = src.shape[:2]
+        nonzero = np.flatnonzero(power.any(axis=1))
+        j0, j1 = (int(nonzero[0]), int(nonzero[-1]) + 1) if len(nonzero) else (0, 0)
+        pts, pw = _take_brightest(src, power, BRIGHT, j0, j1)
+        most = max(self._plan(m, w)[1] for m in range(1, self.levels))
+        spec = np.fft.rfft(np.ascontiguousarray(src[j0:j1].transpose(2, 0, 1)), axis=2)[:, :, : most + 1]
+        x = np.ascontiguousarray(np.concatenate([spec.real, spec.imag]).transpose(2, 1, 0), np.float32)
+        for m in range(1, self.levels):
+            _, freqs, cols = self._plan(m, w)
+            dirs = self._dirs[m].reshape(-1, 3)
+            if j1 > j0:
+                y = np.matmul(self._spectra(m, h, j0, j1), x[: freqs + 1])  # (freqs + 1, rows, 6)
+                yc = np.ascontiguousarray((y[..., :3] + 1j * y[..., 3:]).transpose(1, 2, 0))  # (rows, 3, freqs + 1)
+                # grid columns at 2 pi (p + 1/2) / cols, the source's at 2 pi (q + 1/2) / w
+                yc *= self._shift(freqs, cols, w)
+                grid = np.fft.irfft(yc, n=cols, axis=2).transpose(0, 2, 1)  # (rows, cols, 3)
+                grid = np.ascontiguousarray(grid.reshape(-1, 3), np.float32)
+                idx, wts = self._taps(m, h)
+                out = np.empty((len(dirs), 3))
+                _gather(grid, idx, wts, False, out)
+                out *= cols / w
+            else:
                 out = np.zeros((len(dirs), 3))
-                fine_h, near, horizon = self._plan(m)
-                n = int(np.searchsorted(heights, min(max(fine_h, horizon), int(heights[-1])))) + 1
-                mean, mom, pw, lum = flat[2:]
-                open_cos, horizon_sin = self._opening(heights[:n], fine_h, near, horizon)
-                _prefilter_kernel(dirs, self._alpha[m], 1.0 / self._norm[m], open_cos, horizon_sin,
-                                  heights[:n], offsets[:n], mean, mom, pw, lum, out)
-                mips.append(out.reshape(self._dirs[m].shape).astype(np.float32))
+            _add_points(dirs, pts, pw, self._alpha[m], 1.0 / self._norm[m], out)
+            mips.append(np.maximum(out, 0.0).reshape(self._dirs[m].shape).astype(np.float32))
         return Cubemap(mips, list(self.roughness))
 
     def _mip0(self, a: np.ndarray) -> np.ndarray:
@@ -424,10 +394,9 @@ class CubemapFilter:
         if self._bilinear is None or self._bilinear[0] != key:
             self._bilinear = (key, _bilinear_taps(h, self._dirs[0].reshape(-1, 3)))
         idx, wts = self._bilinear[1]
-        flat = a.reshape(-1, 3)
-        px = flat[idx]  # (n, 4, 3)
-        px = np.where(np.isfinite(px) & (px > 0), px, np.float32(0))
-        return np.einsum("nk,nkc->nc", wts, px).reshape(6, self.size, self.size, 3).astype(np.float32)
+        out = np.empty((len(idx), 3))
+        _gather(np.ascontiguousarray(a, np.float32).reshape(-1, 3), idx, wts, True, out)
+        return out.reshape(6, self.size, self.size, 3).astype(np.float32)
 
     def brute_force(self, equirect: np.ndarray, mip: int, dirs: np.ndarray) -> np.ndarray:
         """The reference: the filter integral over every pixel of the map at ``dirs`` (k, 3)."""
