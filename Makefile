@@ -22,6 +22,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 run: $(STAMP)
+	@$(BIN)/python -m compileall -q device drivers sim calibration hostlink bench  # sources changed since install (a pull)
 	$(BIN)/lightprobe serve --camera sim --scene $(SCENE) --host $(HOST) --port $(PORT) $(if $(VIEW_MESH),--view-mesh $(VIEW_MESH))
 
 NODE_TOOLS := tests/node/node_modules/.installed
