@@ -279,11 +279,19 @@ async def simulator_accuracy(scene: str, fmt: Any, shared_data: Path | None = No
 
 
 def run_stacks(shared_data: Path) -> dict[str, Any]:
-    """:func:`score_stack` of every stack in ``shared_data/exposure_stacks`` (with a times file)."""
+    """:func:`score_stack` of every stack in ``shared_data/exposure_stacks`` (with a times file),
+    as it is and, where :func:`device.hdr.align.stack_shifts` finds it misregistered, registered
+    (``"registered"``: every method fuses the same registered frames)."""
     root = Path(shared_data) / "exposure_stacks"
     names = sorted(d.name for d in root.iterdir() if (d / "exposure_times_seconds.txt").is_file())
+    from device.hdr.align import align_stack
+
     out = {}
     for name in names:
         frames, times = load_stack(shared_data, name)
         out[name] = {"frames": len(frames), "size": list(frames[0].shape[1::-1]), **score_stack(frames, times)}
+        registered, shifts = align_stack(frames)
+        out[name]["shifts"] = [list(s) for s in shifts]
+        if any(s != (0, 0) for s in shifts):  # every method given the same registered frames
+            out[name]["registered"] = score_stack(registered, times)
     return out

@@ -185,6 +185,55 @@ def test_fuse_reports_what_it_did_and_a_bad_stack(stack: tuple[list[Path], list[
     assert "warning: over 5% of the pixels are saturated even in the shortest exposure" in out
 
 
+def test_a_hand_held_stack_is_reported_and_registered_with_align(shared_data: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """The pku phone stack (2-5 px off): ``fuse`` warns and names ``--align``; with it the frames
+    are registered (the shifts in the report and the EXR header), and the warning is gone."""
+    d = shared_data / "exposure_stacks" / "pku_campus_trees"
+    images = sorted(str(p) for p in d.glob("Ldr*.jpg"))
+    times = str(d / "exposure_times_seconds.txt")
+    assert main(["fuse", *images, "--times-file", times, "--out", str(tmp_path / "a.exr")]) == 0
+    out = capsys.readouterr().out
+    assert "registration: not applied, frames off by up to 5 px" in out
+    assert "warning: the frames are misregistered by up to 5 px (a hand-held stack?): --align registers them" in out
+    _, header = read_exr(tmp_path / "a.exr")
+    assert header["aligned"] == "no"
+    assert main(["fuse", *images, "--times-file", times, "--align", "--out", str(tmp_path / "b.exr")]) == 0
+    out = capsys.readouterr().out
+    assert "registration: applied, frames off by up to 5 px" in out
+    assert "misregistered" not in out
+    _, header = read_exr(tmp_path / "b.exr")
+    shifts = [tuple(int(v) for v in s.split(",")) for s in str(header["aligned"]).split()]
+    assert len(shifts) == len(images)
+    assert (0, 0) in shifts
+    assert max(max(map(abs, s)) for s in shifts) == 5
+
+
+def test_registration_recovers_known_shifts_of_a_real_stack(stack: tuple[list[Path], list[float], Path]) -> None:
+    """The tripod piccante stack moved by known whole pixels (border replicated): the median
+    threshold bitmaps find every move back to the pixel, relative to the reference frame, in the
+    frames with mid-tones to register (the two shortest are nearly black: they take their
+    neighbour's shift)."""
+    from device.hdr.align import MIN_MIDTONE, apply_shifts, stack_shifts
+
+    images, _, _ = stack
+    frames = [cv2.imread(str(p))[..., ::-1] for p in images]
+    grey = [cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in frames]
+    usable = [float(((g >= 16) & (g <= 240)).mean()) >= MIN_MIDTONE for g in grey]
+    assert sum(usable) >= 4, usable
+    base = stack_shifts(frames)
+    moves = [(0, 0), (3, -2), (-4, 1), (2, 5), (-1, -3), (6, 0), (0, -6)][: len(frames)]
+    moved = apply_shifts(frames, moves)
+    found = stack_shifts(moved)
+    ref = found.index((0, 0)) if (0, 0) in found else 0
+    for k, (f, m, b) in enumerate(zip(found, moves, base, strict=True)):
+        if not usable[k]:
+            continue
+        # registering undoes the move: found = base - (move - the reference's move)
+        want = (b[0] - (m[0] - moves[ref][0]), b[1] - (m[1] - moves[ref][1]))
+        assert f == want, (k, f, want)
+
+
 def test_deghosting_with_a_measured_response_drops_a_moving_lamp_only(
         stack: tuple[list[Path], list[float], Path]) -> None:
     """A patch pasted into one exposure of the real (static) stack, bright (a lamp on during that

@@ -1,11 +1,12 @@
-"""``lightprobe fuse IMG... --times T... [--response FILE] --out OUT.exr``
+"""``lightprobe fuse IMG... --times T... [--response FILE] [--align] --out OUT.exr``
 
 Fuses an exposure stack of 8-bit images into a linear HDR image (OpenEXR, float32, metadata
 ``unit=relative``, ``exposures``, ``response``, ``saturated_pixels``). Without ``--response`` the
 camera response is estimated from the stack itself (Debevec & Malik 1997,
 :func:`calibration.response.solve_debevec`, with the scatter per code the merge weights by). It
-reports what it did: the response's source, the share of samples the deghosting rejected, the
-saturated and too-dark fractions, the dynamic range, and warnings for a bad stack. Bad input
+reports what it did: the response's source, the frames' misregistration (``--align`` registers
+a hand-held stack first, :mod:`device.hdr.align`), the share of samples the deghosting rejected,
+the saturated and too-dark fractions, the dynamic range, and warnings for a bad stack. Bad input
 (unreadable image, mismatched sizes, missing or non-positive times, count mismatch) exits 2 with a
 one-line message naming the file or value (CONVENTIONS.md).
 """
@@ -42,6 +43,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="calibration JSON with a 'response' section (or a bare response object); "
                         "default: estimate it from the stack (Debevec-Malik)")
     p.add_argument("--out", type=Path, required=True, metavar="OUT.exr", help="output OpenEXR file")
+    p.add_argument("--align", action="store_true",
+                   help="register a hand-held stack first (median threshold bitmaps, whole pixels); "
+                        "without it a misregistered stack is only reported")
     p.add_argument("--no-deghost", action="store_true",
                    help="keep samples that disagree with the reference exposure (static scenes)")
     p.add_argument("--smoothness", type=float, default=None,
@@ -137,6 +141,7 @@ def _load_response(path: Path) -> Response:
 
 def _run(ns: argparse.Namespace) -> int:
     from device.core.imageio import write_exr
+    from device.hdr.align import apply_shifts, stack_shifts
     from device.hdr.fusion import fuse
 
     images = [Path(p) for p in ns.images]
@@ -156,12 +161,15 @@ def _run(ns: argparse.Namespace) -> int:
         raise InputError(f"{ns.out}: folder {ns.out.parent} does not exist", param="--out")
     response = _load_response(ns.response) if ns.response is not None else None
     frames = read_stack(images)
+    shifts = stack_shifts(frames)
+    if ns.align:
+        frames = apply_shifts(frames, shifts)
     source = f"{ns.response}" if response is not None else "estimated from the stack"
     if response is None:
         response = estimate_response(frames, times, ns.smoothness)
     settings = fusion_settings(response, deghost=not ns.no_deghost)
     res = fuse(frames, times, response, settings=settings)
-    report = fuse_report(res, response, source)
+    report = fuse_report(res, response, source, shifts=shifts, aligned=ns.align)
     meta = {
         "unit": "relative",
         "exposures": ",".join(f"{t:.9g}" for t in times),
@@ -169,11 +177,14 @@ def _run(ns: argparse.Namespace) -> int:
         "saturated_pixels": str(int(res.saturated.sum())),
         "invalid_pixels": str(int(res.invalid.sum())),
         "deghost_rejected": f"{report['deghost_rejected_fraction']:.6g}",
+        "aligned": " ".join(f"{dx},{dy}" for dx, dy in shifts) if ns.align else "no",
         "software": "lightprobe fuse",
     }
     write_exr(ns.out, res.radiance, meta)
     print(f"{ns.out}: {res.radiance.shape[1]}x{res.radiance.shape[0]}, {len(images)} exposures")
     print(f"  response: {report['response']} ({source}); noise model: {report['noise_model']}")
+    most = max((max(abs(dx), abs(dy)) for dx, dy in shifts), default=0)
+    print(f"  registration: {'applied' if ns.align else 'not applied'}, frames off by up to {most} px")
     print(f"  deghosting: {'off' if ns.no_deghost else 'on'}, {100 * report['deghost_rejected_fraction']:.2f}% "
           "of the usable samples rejected")
     print(f"  saturated in every exposure: {100 * report['saturated_fraction']:.2f}% of pixels; "
@@ -194,8 +205,10 @@ def fusion_settings(response: Response, *, deghost: bool = True) -> FusionSettin
     return FusionSettings(deghost=deghost, ghost_rel_tol=0.05 if exact else 0.25)
 
 
-def fuse_report(res: Any, response: Response, source: str) -> dict[str, Any]:
-    """What a fusion did, so a user sees a bad stack for what it is."""
+def fuse_report(res: Any, response: Response, source: str, shifts: list[tuple[int, int]] | None = None,
+                aligned: bool = False) -> dict[str, Any]:
+    """What a fusion did, so a user sees a bad stack for what it is. ``shifts``: each frame's
+    registration (:func:`device.hdr.align.stack_shifts`), applied if ``aligned``."""
     lum = res.radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     good = lum[np.isfinite(lum) & (lum > 0) & ~res.saturated & ~res.invalid]
     dr = float(np.percentile(good, 99.9) / np.percentile(good, 0.1)) if good.size > 10 else 0.0
@@ -206,7 +219,12 @@ def fuse_report(res: Any, response: Response, source: str) -> dict[str, Any]:
         "deghost_rejected_fraction": res.rejected_fraction,
         "saturated_fraction": float(res.saturated.mean()), "dark_fraction": float(res.invalid.mean()),
         "dynamic_range": dr, "warnings": [],
+        "shifts": [list(s) for s in shifts or []], "aligned": aligned,
     }
+    most = max((max(abs(dx), abs(dy)) for dx, dy in shifts or []), default=0)
+    if not aligned and most >= 2:  # (a pixel is the bitmaps' resolution: tripod stacks show 0-1)
+        out["warnings"].append(f"the frames are misregistered by up to {most} px (a hand-held stack?): "
+                               "--align registers them")
     if out["saturated_fraction"] > 0.05:
         out["warnings"].append("over 5% of the pixels are saturated even in the shortest exposure: add shorter ones")
     if out["dark_fraction"] > 0.05:
