@@ -298,8 +298,8 @@ class Cubemap:
 
 
 class CubemapFilter:
-    """Prefilters maps into :class:`Cubemap` s of one size and mip count (directions, normalisers
-    and near radii computed once)."""
+    """Prefilters maps into :class:`Cubemap` s of one size and mip count (texel directions and
+    normalisers made once; per source size, each mip's kernel spectra and grid taps, kept)."""
 
     def __init__(self, size: int = 64, levels: int | None = None, min_size: int = 4) -> None:
         if size < 1 or size & (size - 1) or size > 1024:
