@@ -282,10 +282,10 @@ def run_stacks(shared_data: Path) -> dict[str, Any]:
     """:func:`score_stack` of every stack in ``shared_data/exposure_stacks`` (with a times file),
     as it is and, where :func:`device.hdr.align.stack_shifts` finds it misregistered, registered
     (``"registered"``: every method fuses the same registered frames)."""
-    root = Path(shared_data) / "exposure_stacks"
-    names = sorted(d.name for d in root.iterdir() if (d / "exposure_times_seconds.txt").is_file())
     from device.hdr.align import align_stack
 
+    root = Path(shared_data) / "exposure_stacks"
+    names = sorted(d.name for d in root.iterdir() if (d / "exposure_times_seconds.txt").is_file())
     out = {}
     for name in names:
         frames, times = load_stack(shared_data, name)

@@ -420,13 +420,11 @@ class Pipeline:
             else:
                 if geo.rows == self._geo.rows:  # same output pixels: the rolling estimate carries over
                     self._geo = geo
-                    if self._merge is not None:
-                        self._merge.sharing = geo.sharing
                     self._steps = 0  # its frames link kernels for its arrays: release after them
                     log.info("balanced projection table in use")
         if self._merge is None:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
-                                       max_slots=self.config.max_exposures + 2, sharing=self._geo.sharing)
+                                       max_slots=self.config.max_exposures + 2)
         if self._sampler is None:
             if self._sampler_warm is not None:
                 task = self._sampler_warm
@@ -505,7 +503,7 @@ class Pipeline:
             codes = _as_index(codes, lut.shape[0] - 1).reshape(-1, 3)
         t1 = time.perf_counter()
         fused = merge.update((exposure, gain), self._frame, geo.table, geo.geo_n, geo.mean_gain, codes,
-                             lut, dark)
+                             lut, dark, geo.sharing)
         equirect = geo.equirect_map(fused)
         t2 = time.perf_counter()
         sensor_t = float(frame.meta.timestamp_s)

@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from device.core.sparse import Csr
+
 from . import lens as _lens_module
-from ._sparse import Csr
 from .lens import SimLens
 
 __all__ = ["load_render_matrix"]

@@ -161,7 +161,7 @@ class SimCamera(Camera):
         self._open = True
 
     def _warm_kernels(self) -> None:
-        from ._sparse import warm_kernels
+        from device.core.sparse import warm_kernels
 
         self.sensor.expose(np.zeros((2, 2, 3), np.float32), 1e-3, 1.0, self.mode.format, self.seed, 0)
         warm_kernels()  # the render matrix's loops

@@ -41,9 +41,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from device.core.calibration import FisheyeModel, Vignetting
+from device.core.sparse import Csr
 from device.core.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
-
-from ._sparse import Csr
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -218,7 +217,7 @@ class SimLens:
         key = (eq_height, n, housing)
         if key in self._cache:
             return self._cache[key]
-        import scipy.sparse as sp  # building only: a frame applies the arrays (sim._sparse)
+        import scipy.sparse as sp  # building only: a frame applies the arrays (device.core.sparse)
 
         keep, pu, pv = self._subsamples(n)
         # Overlap matrix, chunk by chunk of sensor pixels (bounded memory in large modes)

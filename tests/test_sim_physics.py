@@ -118,10 +118,10 @@ def test_pixel_solid_angle_matches_the_lens_jacobian(vga_lens) -> None:  # type:
 
 
 def test_render_matrix_arrays_apply_as_scipy_does() -> None:
-    """The frame path's CSR loops (sim._sparse, no SciPy at run time) against SciPy on a random
+    """The frame path's CSR loops (device.core.sparse, no SciPy at run time) against SciPy on a random
     matrix with empty rows and columns: the product, the transpose and a combination of rows."""
     sp = pytest.importorskip("scipy.sparse")
-    from sim._sparse import Csr
+    from device.core.sparse import Csr
 
     rng = np.random.default_rng(7)
     a = sp.random(300, 500, density=0.02, random_state=8, format="csr", dtype=np.float32)

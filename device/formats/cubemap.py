@@ -104,40 +104,38 @@ def ggx_normaliser(alpha: float) -> float:
     return float(2.0 * math.pi * 0.5 * (hi - lo) * np.dot(wq, f))
 
 
-def _bilinear_taps(h: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat pixel indices (n, 4) and weights (n, 4) of a bilinear lookup at directions (n, 3)."""
+def _cells(rows: int, cols: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where unit directions (n, 3) fall in a (rows, cols) equirect grid of cell centres: the
+    cell at or before each (row ``y0``, column ``x0``, unwrapped) and the fractions ``fy``, ``fx``
+    beyond it."""
     from device.core.sphere import angles_from_directions
 
-    w = 2 * h
     theta, phi = angles_from_directions(d)
-    y = theta / math.pi * h - 0.5
-    x = phi / (2 * math.pi) * w - 0.5
+    y = theta / math.pi * rows - 0.5
+    x = phi / (2 * math.pi) * cols - 0.5
     y0 = np.floor(y).astype(np.int64)
     x0 = np.floor(x).astype(np.int64)
-    fy, fx = y - y0, x - x0
+    return y0, x0, y - y0, x - x0
+
+
+def _bilinear(h: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel indices (n, 4) and float64 weights (n, 4) of a bilinear lookup in an (h, 2h)
+    map at directions (n, 3) (wraps in phi, clamps at the poles)."""
+    w = 2 * h
+    y0, x0, fy, fx = _cells(h, w, d)
     ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
     xa, xb = x0 % w, (x0 + 1) % w
     idx = np.stack([ya * w + xa, ya * w + xb, yb * w + xa, yb * w + xb], -1)
-    wts = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
-    return idx, wts.astype(np.float32)
+    return idx, np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], -1)
 
 
 def sample_equirect(equirect: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Bilinear lookup of an (H, 2H, 3) map at unit directions (..., 3) (wraps in phi, clamps
-    at the poles)."""
-    from device.core.sphere import angles_from_directions
-
-    h, w = equirect.shape[:2]
-    theta, phi = angles_from_directions(d)
-    y = theta / math.pi * h - 0.5
-    x = phi / (2 * math.pi) * w - 0.5
-    y0 = np.floor(y).astype(np.int64)
-    x0 = np.floor(x).astype(np.int64)
-    fy, fx = (y - y0)[..., None], (x - x0)[..., None]
-    ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
-    xa, xb = x0 % w, (x0 + 1) % w
-    m = equirect.astype(np.float64, copy=False)
-    return ((1 - fy) * ((1 - fx) * m[ya, xa] + fx * m[ya, xb]) + fy * ((1 - fx) * m[yb, xa] + fx * m[yb, xb]))
+    at the poles), float64."""
+    d = np.asarray(d)
+    idx, wts = _bilinear(equirect.shape[0], d.reshape(-1, 3))
+    m = equirect.astype(np.float64, copy=False).reshape(-1, 3)
+    return np.einsum("nk,nkc->nc", wts, m[idx]).reshape(d.shape)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
@@ -232,20 +230,14 @@ def _kernel_spectra(alpha: float, norm: float, height: int, rows: int, freqs: in
 def _cubic_taps(rows: int, cols: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (n, 16) and weights (n, 16) of a Catmull-Rom lookup at directions (n, 3) in a
     (rows, cols) equirect grid of cell centres; beyond a pole, row ``-1 - r`` half a turn away."""
-    from device.core.sphere import angles_from_directions
-
-    theta, phi = angles_from_directions(d)
-    y = theta / math.pi * rows - 0.5
-    x = phi / (2 * math.pi) * cols - 0.5
-    y0 = np.floor(y).astype(np.int64)
-    x0 = np.floor(x).astype(np.int64)
+    y0, x0, fy, fx = _cells(rows, cols, d)
 
     def weights(f: np.ndarray) -> np.ndarray:
         f2, f3 = f * f, f * f * f
         return np.stack([-0.5 * f3 + f2 - 0.5 * f, 1.5 * f3 - 2.5 * f2 + 1.0, -1.5 * f3 + 2.0 * f2 + 0.5 * f,
                          0.5 * f3 - 0.5 * f2], -1)
 
-    wy, wx = weights(y - y0), weights(x - x0)
+    wy, wx = weights(fy), weights(fx)
     r = y0[:, None] + np.arange(-1, 3)[None, :]  # (n, 4)
     c = x0[:, None] + np.arange(-1, 3)[None, :]
     over = (r < 0) | (r >= rows)
@@ -254,9 +246,10 @@ def _cubic_taps(rows: int, cols: int, d: np.ndarray) -> tuple[np.ndarray, np.nda
     return idx.reshape(-1, 16), (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16).astype(np.float32)
 
 
-def _source(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _source(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The map as the filter's source, float32, non-finite and negative values 0, averaged 2 x 2
-    down to at most ``MAX_SOURCE`` rows; and its power per pixel (luminance x solid angle)."""
+    down to at most ``MAX_SOURCE`` rows; its power per pixel (luminance x solid angle); its rows'
+    solid angles."""
     a = np.ascontiguousarray(a, np.float32)
     while a.shape[0] > MAX_SOURCE:
         h, w = a.shape[0] // 2, a.shape[1] // 2
@@ -264,11 +257,12 @@ def _source(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h, w = a.shape[:2]
     src = np.empty((h, w, 3), np.float32)
     power = np.empty((h, w), np.float32)
-    _clean_power(a, equirect_row_solid_angle(h, w), src, power)
-    return src, power
+    omega = equirect_row_solid_angle(h, w)
+    _clean_power(a, omega, src, power)
+    return src, power, omega
 
 
-def _take_brightest(src: np.ndarray, power: np.ndarray, count: int, j0: int,
+def _take_brightest(src: np.ndarray, power: np.ndarray, omega: np.ndarray, count: int, j0: int,
                     j1: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` pixels of most power (among rows ``j0 .. j1``, the rest is black): their
     directions and powers (3, k) float64, taken out of ``src`` (set to 0 there)."""
@@ -280,7 +274,7 @@ def _take_brightest(src: np.ndarray, power: np.ndarray, count: int, j0: int,
     idx = idx[flat[idx] > 0]
     r, c = j0 + idx // w, idx % w
     pts = directions_from_angles(math.pi * (r + 0.5) / h, 2.0 * math.pi * (c + 0.5) / w)
-    pw = src[r, c].astype(np.float64) * equirect_row_solid_angle(h, w)[r][:, None]
+    pw = src[r, c].astype(np.float64) * omega[r][:, None]
     src[r, c] = 0.0
     return np.ascontiguousarray(pts.T, np.float64), np.ascontiguousarray(pw.T)
 
@@ -359,11 +353,11 @@ class CubemapFilter:
         mips = [self._mip0(a)]
         if self.levels == 1:
             return Cubemap(mips, list(self.roughness))
-        src, power = _source(a)
+        src, power, omega = _source(a)
         h, w = src.shape[:2]
         nonzero = np.flatnonzero(power.any(axis=1))
         j0, j1 = (int(nonzero[0]), int(nonzero[-1]) + 1) if len(nonzero) else (0, 0)
-        pts, pw = _take_brightest(src, power, BRIGHT, j0, j1)
+        pts, pw = _take_brightest(src, power, omega, BRIGHT, j0, j1)
         most = max(self._plan(m, w)[1] for m in range(1, self.levels))
         spec = np.fft.rfft(np.ascontiguousarray(src[j0:j1].transpose(2, 0, 1)), axis=2)[:, :, : most + 1]
         x = np.ascontiguousarray(np.concatenate([spec.real, spec.imag]).transpose(2, 1, 0), np.float32)
@@ -392,7 +386,8 @@ class CubemapFilter:
         h = a.shape[0]
         key = (h, self.size)
         if self._bilinear is None or self._bilinear[0] != key:
-            self._bilinear = (key, _bilinear_taps(h, self._dirs[0].reshape(-1, 3)))
+            idx, wts = _bilinear(h, self._dirs[0].reshape(-1, 3))
+            self._bilinear = (key, (idx, wts.astype(np.float32)))
         idx, wts = self._bilinear[1]
         out = np.empty((len(idx), 3))
         _gather(np.ascontiguousarray(a, np.float32).reshape(-1, 3), idx, wts, True, out)

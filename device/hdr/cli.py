@@ -183,8 +183,8 @@ def _run(ns: argparse.Namespace) -> int:
     write_exr(ns.out, res.radiance, meta)
     print(f"{ns.out}: {res.radiance.shape[1]}x{res.radiance.shape[0]}, {len(images)} exposures")
     print(f"  response: {report['response']} ({source}); noise model: {report['noise_model']}")
-    most = max((max(abs(dx), abs(dy)) for dx, dy in shifts), default=0)
-    print(f"  registration: {'applied' if ns.align else 'not applied'}, frames off by up to {most} px")
+    print(f"  registration: {'applied' if ns.align else 'not applied'}, frames off by up to "
+          f"{report['max_shift_px']} px")
     print(f"  deghosting: {'off' if ns.no_deghost else 'on'}, {100 * report['deghost_rejected_fraction']:.2f}% "
           "of the usable samples rejected")
     print(f"  saturated in every exposure: {100 * report['saturated_fraction']:.2f}% of pixels; "
@@ -220,8 +220,9 @@ def fuse_report(res: Any, response: Response, source: str, shifts: list[tuple[in
         "saturated_fraction": float(res.saturated.mean()), "dark_fraction": float(res.invalid.mean()),
         "dynamic_range": dr, "warnings": [],
         "shifts": [list(s) for s in shifts or []], "aligned": aligned,
+        "max_shift_px": max((max(abs(dx), abs(dy)) for dx, dy in shifts or []), default=0),
     }
-    most = max((max(abs(dx), abs(dy)) for dx, dy in shifts or []), default=0)
+    most = out["max_shift_px"]
     if not aligned and most >= 2:  # (a pixel is the bitmaps' resolution: tripod stacks show 0-1)
         out["warnings"].append(f"the frames are misregistered by up to {most} px (a hand-held stack?): "
                                "--align registers them")

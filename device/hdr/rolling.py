@@ -476,9 +476,6 @@ class RollingMerge:
     # (flashlight, 3 deg disc at 40 deg/s, 256-row map: glossy p90 7.5% with 6, 3.8% with 12)
     move_reach: int = 12
     track: bool = True  # carry measured lamps at their velocity through censored frames (tracking.py)
-    # (pixels,) how much more a region's sum varies than its pixels' variances summed (the
-    # table's sample sharing, :func:`device.projection.sample_sharing`), for the tracker
-    sharing: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # slots are allocated as exposures arrive (a bracket often uses fewer than max_slots)
@@ -541,8 +538,9 @@ class RollingMerge:
 
     def update(self, key: tuple[float, float], frame: int, table: object, geo_n: np.ndarray,
                mean_gain: np.ndarray, codes: np.ndarray, lut: np.ndarray,
-               bounds: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """Fuse, project and merge one frame (arguments as :func:`frame_to_map`) into its slot;
+               bounds: tuple[np.ndarray, np.ndarray], sharing: np.ndarray | None = None) -> np.ndarray:
+        """Fuse, project and merge one frame (arguments as :func:`frame_to_map`; ``sharing``: the
+        table's :func:`device.projection.sample_sharing`, for the lamp tracker) into its slot;
         returns the fused map (pixels, 3) float32 (a buffer of the merge's that a later update
         overwrites: copy what must outlive the frame)."""
         s = self._slot(key, frame)
@@ -564,7 +562,7 @@ class RollingMerge:
         else:
             placed = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self.tracker is not None:
-            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach, self.den, self.sharing)
+            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach, self.den, sharing)
         # this frame's map is the next one's ``prev``; the kernel writes every pixel of ``out``,
         # so the two buffers swap instead of copying 0.8 MB a frame
         self.prev, self.fused = self.fused, self.prev

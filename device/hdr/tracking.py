@@ -284,7 +284,6 @@ class LampTracker:
     # frames since each pixel was last seen saturated (255: long ago)
     _sat_age: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.uint8), repr=False)
     _row_w: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # solid angle per row
-    _sharing: np.ndarray | None = field(default=None, repr=False)  # (rows, width), see update
 
     def update(self, frame: int, fused: np.ndarray, satnow: np.ndarray,
                placed: tuple[np.ndarray, np.ndarray] | None = None, reach: int = 0,
@@ -318,12 +317,13 @@ class LampTracker:
                 drawn += 1
                 dest, added = dest[~taken], added[~taken]  # taken back once
         prec = precision.reshape(rows, self.width, 3) if precision is not None else None
-        self._sharing = sharing.reshape(rows, self.width) if sharing is not None else None
-        self._measure(frame, f, sat, prec)
+        share = sharing.reshape(rows, self.width) if sharing is not None else None
+        self._measure(frame, f, sat, prec, share)
         return drawn
 
     # ---- the energy of a measured lamp ------------------------------------------------------
-    def _filter(self, t: _Track, old: _Track | None, prec: np.ndarray | None, f: np.ndarray) -> None:
+    def _filter(self, t: _Track, old: _Track | None, prec: np.ndarray | None, share: np.ndarray | None,
+                f: np.ndarray) -> None:
         """Filter the energy of lamp ``t`` just measured (its image, background and footprint
         in ``t``) with its track's past: a lamp only the shortest exposure measures is a few
         pixels, each with the shot noise of one frame (the daylight sun: its energy moved +-0.5%
@@ -343,8 +343,8 @@ class LampTracker:
         with np.errstate(divide="ignore"):
             var_l = (LUM_R**2 / p[..., 0] + LUM_G**2 / p[..., 1] + LUM_B**2 / p[..., 2])
         var_l = var_l * (wr * wr)
-        if self._sharing is not None:
-            var_l *= self._sharing[rr][:, cc]
+        if share is not None:
+            var_l *= share[rr][:, cc]
         var = float(var_l[t.footprint].sum())
         if not (0 < var < np.inf):
             return
@@ -428,7 +428,8 @@ class LampTracker:
         return near
 
     # ---- measuring ------------------------------------------------------------------------
-    def _measure(self, frame: int, f: np.ndarray, sat: np.ndarray, prec: np.ndarray | None = None) -> None:
+    def _measure(self, frame: int, f: np.ndarray, sat: np.ndarray, prec: np.ndarray | None = None,
+                 share: np.ndarray | None = None) -> None:
         rows, width = sat.shape
         peak, y0, y1, cols = _scan(f, sat, self._sat_age, float(self.relative))
         if not np.isfinite(peak) or peak <= 0 or y1 <= y0:
@@ -457,7 +458,7 @@ class LampTracker:
                     vel = _wrap_delta(centre - old.centre, width) / (frame - old.frame)
             track = _Track(frame, centre, vel, (y + y0 - g, (s0 + x - g) % width), img, base, foot)
             if y + y0 - g >= 0 and y + y0 - g + foot.shape[0] <= rows:
-                self._filter(track, old, prec, f)
+                self._filter(track, old, prec, share, f)
             kept.append(track)
         # a track this frame did not measure (censored) stays until it is too old
         kept += [t for t in self.tracks if id(t) not in continued and frame - t.frame <= self.max_age]

@@ -20,6 +20,7 @@ import numba
 import numpy as np
 
 from device.core.calibration import Calibration, FisheyeModel
+from device.core.sparse import Csr
 from device.core.sphere import CAMERA_TO_PROBE
 
 from .geometry import (
@@ -75,17 +76,6 @@ class _Coo:
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else np.zeros(0, np.int64)
         data = np.add.reduceat(np.asarray(val, np.float64)[order], starts) if len(key) else np.zeros(0)
         return cls((key[starts] // m).astype(np.int32), (key[starts] % m).astype(np.int32), data)
-
-
-@dataclass
-class _Csr:
-    """An (n, m) matrix in CSR form, each row's columns sorted. The table build's own (it needs
-    no more than this, and a service that builds its tables imports no scipy: ~20 MB on a board)."""
-
-    indptr: np.ndarray  # (n+1,) int64
-    indices: np.ndarray  # (nnz,) int32
-    data: np.ndarray  # (nnz,) float64
-    shape: tuple[int, int]
 
 
 class _Geometry:
@@ -190,7 +180,7 @@ def _ipf(indptr, indices, data, row_target, interior, col_target, sweeps, tol, o
             break
 
 
-def _balance(W: _Csr, row_target: np.ndarray, interior: np.ndarray,
+def _balance(W: Csr, row_target: np.ndarray, interior: np.ndarray,
              col_target: np.ndarray, sweeps: int = 150, tol: float = 1e-5,
              omega: float = 1.9) -> float:
     """Balance ``W`` in place: interior rows -> ``row_target``, columns -> ``col_target``.
@@ -232,7 +222,7 @@ def _chunk_entries(grid: _Grid, ch: _Chunk, m: int) -> _Coo:
     return _Coo.summed(j[ok], i[ok], w[ok], m)
 
 
-def _assemble_csr(parts: list[_Coo], n: int, m: int) -> _Csr:
+def _assemble_csr(parts: list[_Coo], n: int, m: int) -> Csr:
     """The (n, m) CSR matrix of the chunks' entries, written in place, part by part (emptying
     ``parts``), with no COO copy of the whole (the build's peak memory). Exact because each part
     is duplicate-free (``_Coo.summed``) and the parts hold disjoint, increasing column ranges
@@ -257,10 +247,10 @@ def _assemble_csr(parts: list[_Coo], n: int, m: int) -> _Csr:
         data[pos] = p.data
         fill += np.bincount(r, minlength=n)
     parts.clear()
-    return _Csr(indptr, indices, data, (n, m))
+    return Csr(data=data, indices=indices, indptr=indptr, shape=(n, m))
 
 
-def _add_rows(W: _Csr, extra: _Coo) -> _Csr:
+def _add_rows(W: Csr, extra: _Coo) -> Csr:
     """``W`` with the entries of ``extra`` (sorted, in rows that are empty in ``W``)."""
     n, _ = W.shape
     counts = np.diff(W.indptr) + np.bincount(extra.row, minlength=n)
@@ -274,7 +264,7 @@ def _add_rows(W: _Csr, extra: _Coo) -> _Csr:
     data = np.empty(int(indptr[-1]), np.float64)
     indices[pos_old], data[pos_old] = W.indices, W.data
     indices[pos_new], data[pos_new] = extra.col, extra.data
-    return _Csr(indptr, indices, data, W.shape)
+    return Csr(data=data, indices=indices, indptr=indptr, shape=W.shape)
 
 
 def _interior(grid: _Grid, geo: _Geometry, balance: bool) -> np.ndarray:
