@@ -6,9 +6,9 @@ equirect convention is Mitsuba's ``envmap``, so the map goes in as it is.
 Both images integrate each pixel's area (ours: 4 x 4 pixel-centre samples, averaged; Mitsuba:
 2048 samples, ~1.1% noise per pixel measured between seeds), so shadow edges compare like for
 like; silhouette pixels (a neighbour on another object or the background) are left out. Metric:
-relative RMSE of luminance, sqrt(sum (Y - Y_ref)^2 / sum Y_ref^2). Measured 2026-12-04: rays 1.60%,
-voxels 3.10%; the same shading at the vertices, interpolated over the triangles (what per-pixel
-shading avoids): 5.26% / 5.94%.
+relative RMSE of luminance, sqrt(sum (Y - Y_ref)^2 / sum Y_ref^2). Measured 2026-12-06: rays 1.60%,
+voxels 2.58% (the issue's target 3% for both); the same shading at the vertices, interpolated over
+the triangles (what per-pixel shading avoids): 5.26% / 5.76%.
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def _area(img: np.ndarray) -> np.ndarray:
     return img.reshape(H, SS, W, SS, 3).mean(axis=(1, 3))
 
 
-@pytest.mark.parametrize(("visibility", "bound"), [("rays", 0.03), ("voxels", 0.045)])
+@pytest.mark.parametrize(("visibility", "bound"), [("rays", 0.03), ("voxels", 0.03)])
 def test_per_pixel_image_against_mitsuba(setup, visibility: str, bound: float) -> None:  # type: ignore[no-untyped-def]
     from hostlink.relight.raster import rasterize, resolve
     from hostlink.relight.sg import SGRelighter

@@ -18,11 +18,14 @@ Choices the paper leaves open, and why:
   kernels (paper eq. 4's product in closed form) for the visibility weights and the Phong lobe.
   The residual grids are fixed, so each table is one matrix-vector product with a matrix cached
   by the lobes' axes and sharpness; the cost of a light change does not depend on the mesh.
-- **Visibility of the residual: 7 cones** (paper: circle packing): one along ``n`` and six tilted
-  60 deg, half-angle 30 deg. Each cone is a visibility SG ``S_c`` (sharpness from the half-angle
-  by paper eq. 5-6, ``ln 2 / (1 - cos alpha)``); the light arriving through cone ``c`` is the
-  triple product (cosine SG, ``S_c``, lighting), so ``V_res`` is the cones' transmittances
-  weighted by the light each carries. Unoccluded points get ``V_res = 1`` exactly.
+- **Visibility of the residual: 20 cones** (the paper packs 7 circles; 7 wide cones left 8.6%
+  per vertex on dikhololo_night even with exactly traced transmittances, BENCHMARKS.md): the
+  cones' axes a cosine-distributed Fibonacci pattern about ``n``, so each stands for an equal
+  share of the unshadowed irradiance, half-angle ``acos(1 - 1/20)`` (18 deg: twenty such caps
+  hold the hemisphere's solid angle). Each cone is a visibility SG ``S_c`` (sharpness from the
+  half-angle by paper eq. 5-6, ``ln 2 / (1 - cos alpha)``); the light arriving through cone
+  ``c`` is the lighting filtered by ``S_c`` at its axis (one table), so ``V_res`` is the cones'
+  transmittances weighted by the light each carries. Unoccluded points get ``V_res = 1`` exactly.
 - **Peaks** (1-3 SGs per lamp): each with its own visibility ``v_p``, the cosine exact
   (``C_p``: the zonal clamped-cosine integral of that lobe), the Phong term by the closed-form
   product of the peak with the BRDF lobe, the cosine taken at the product's axis ``q_p``.
@@ -33,16 +36,23 @@ Choices the paper leaves open, and why:
 - **Visibility**, two ways. ``"voxels"`` (the paper's, for the residual and the reflection
   cone): the scene voxelised (every triangle's voxels, per object, re-voxelised only for objects
   that moved or deformed: dirty flags), per-axis occupancy mip pyramids, cones traced front to
-  back (:func:`~hostlink.relight.sgkernels.trace_cones`), each sample's opacity raised to
-  ``cone_gain`` = 0.8 (compositing samples as independent occluders over-occludes: a cone's
-  samples through one opaque object are correlated; 0.8 measured best over the shared maps,
-  BENCHMARKS.md). The peaks' shadows are Embree rays even here, not cones: a lamp's cone
-  (0.2-4 deg) marched through the grid is a voxel-wide blur that over-occludes near surfaces
-  (9.9% per vertex on studio_small_03 with peak cones, 4.0% with rays): one ray along the axis
-  for a peak under 2 voxels across the grid (the sun), else ``PEAK_RAYS`` = 8 drawn from the
-  lobe; in :meth:`SGRelighter.render` the hard ones per pixel, the soft ones per vertex of the
-  visible triangles, interpolated. ``"rays"`` (the exact baseline): Embree rays, 16 per cone
-  uniformly within it and 32 per peak drawn from the lobe's own distribution, cosine-weighted.
+  back (:func:`~hostlink.relight.sgkernels.trace_cones`, one sampled cell per step), each
+  sample's opacity raised to ``cone_gain`` = 0.8 (compositing samples as independent occluders
+  over-occludes: a cone's samples through one opaque object are correlated). **Rectangles** (a
+  floor, a wall, a table top: planar objects whose area is their bounding rectangle's) are no
+  voxels: each cone's share of rays that meet one is counted exactly
+  (:func:`~hostlink.relight.sgkernels.rect_clear`, 32 rays per cone), since a one-voxel floor
+  sampled by a wide cone lets 20-30% through (the cow's belly was lit through the floor). The
+  grid holds the other objects only (1.25 x their longest side, so a 3 m floor does not coarsen
+  a 1.7 m object's voxels) and is refitted, all re-voxelised, when one leaves it. The peaks'
+  shadows are Embree rays even here, not cones: a lamp's cone (0.2-4 deg) marched through the
+  grid is a voxel-wide blur that over-occludes near surfaces (9.9% per vertex on studio_small_03
+  with peak cones, 4.0% with rays): one ray along the axis for a peak under 2 voxels across the
+  grid (the sun), else ``PEAK_RAYS`` = 8 drawn from the lobe; in :meth:`SGRelighter.render` the
+  hard ones per pixel, the soft ones per vertex of the visible triangles, interpolated.
+  ``"rays"`` (the exact baseline): Embree rays, 16 per cone uniformly within it and 32 per peak
+  drawn from the lobe's own distribution, cosine-weighted; the residual's visibility by 7 x 16
+  cosine-distributed rays weighted by its radiance.
 """
 
 from __future__ import annotations
@@ -59,11 +69,10 @@ from device.core.errors import InputError
 from device.core.sg import SGLighting
 from hostlink.relight.scene import Camera, Scene, rotation_matrix, vertex_normals
 from hostlink.relight.sgkernels import (
-    LAM_COS,
-    MU_COS,
     cone_frame,
     interpolate,
     pyramid_levels,
+    rect_clear,
     residual_visibility,
     scatter_pixels,
     sg_matrix,
@@ -74,9 +83,12 @@ from hostlink.relight.sgkernels import (
 
 __all__ = ["SGRelighter", "zonal_cosine"]
 
-RING_TILT = math.radians(60.0)
-CONE_HALF = math.radians(30.0)
+DIFFUSE_CONES = 20         # the residual's cones, cosine-distributed over the hemisphere
+CONE_HALF = math.acos(1.0 - 1.0 / DIFFUSE_CONES)   # equal caps: together the hemisphere's solid angle
 LAM_CONE = math.log(2.0) / (1.0 - math.cos(CONE_HALF))          # paper eq. 5-6 inverted
+REFLECTION = DIFFUSE_CONES       # the cone layout: diffuse cones, the reflection cone, the peaks
+PEAK0 = DIFFUSE_CONES + 1
+RECT_RAYS = 32             # rays per cone against the rectangles (exact occluders, not voxels)
 RADIANCE_GRID = 17         # cube-face side of the residual radiance table (ray weights)
 DIFFUSE_GRID = 13          # cube-face side of the diffuse tables (smooth kernels: ~7 deg texels)
 ZONAL_SAMPLES = 1025
@@ -87,6 +99,24 @@ PEAK_RAYS = 8              # rays per broader peak, with voxels (drawn from the 
 
 
 # ---- kernels over the sphere -------------------------------------------------------------------
+def _fibonacci(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stratified fractions ``(k + 1/2) / m`` and golden-angle azimuths of an ``m``-point
+    Fibonacci pattern."""
+    return (np.arange(m) + 0.5) / m, np.arange(m) * math.pi * (3 - math.sqrt(5))
+
+
+def _diffuse_pattern(K: int) -> np.ndarray:
+    """(K, 3) cone axes in a normal's frame (tangent, bitangent, normal): a cosine-distributed
+    Fibonacci pattern, so each cone stands for an equal share of the unshadowed irradiance."""
+    g, phi = _fibonacci(K)
+    st = np.sqrt(g)
+    return np.stack([st * np.cos(phi), st * np.sin(phi), np.sqrt(1 - g)], axis=1)
+
+
+_PATTERN = _diffuse_pattern(DIFFUSE_CONES)
+_RECT_G, _RECT_PHI = _fibonacci(RECT_RAYS)
+
+
 def _grid_dirs(N: int) -> np.ndarray:
     """(6 N N, 3) texel directions of a cube map (layout of :mod:`hostlink.relight.sgkernels`):
     face ``f`` on axis ``f // 2`` (sign + for even f), texel ``[i, j]`` at ``u_j, v_i`` on the next
@@ -148,17 +178,20 @@ def _table_lookup(tab: np.ndarray, d: np.ndarray) -> np.ndarray:
             + wi * ((1 - wj) * tab[f, i0 + 1, j0] + wj * tab[f, i0 + 1, j0 + 1]))
 
 
-def anisotropic_pyramid(occ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def anisotropic_pyramid(occ: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Three occupancy mip pyramids of an (R, R, R) [z, y, x] grid, one per axis: level l + 1 of
     the axis-``k`` pyramid combines each pair of children along axis k as one occluder after the
     other (``1 - (1 - a)(1 - b)``) and averages across the other two axes, so a cell holds about
     the probability that a ray crossing it along k is blocked (a floor stays opaque to rays through
     it at every level, and thin to rays along it). Returned flat, (3, total) float32, with the
-    level offsets (:func:`~hostlink.relight.sgkernels.pyramid_levels` fills them)."""
+    level offsets (:func:`~hostlink.relight.sgkernels.pyramid_levels` fills them); into ``out``
+    when it has the shape (a deforming scene's frames reuse one buffer: 24 MB at 128^3, whose
+    fresh pages cost more than the levels)."""
     R = occ.shape[0]
     sizes = [(R >> lv) ** 3 for lv in range(R.bit_length())]
     offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    flat = np.empty((3, int(offs[-1])), np.float32)
+    shape = (3, int(offs[-1]))
+    flat = out if out is not None and out.shape == shape and out.dtype == np.float32 else np.empty(shape, np.float32)
     flat[:, :sizes[0]] = np.asarray(occ, np.float32).reshape(1, -1)
     pyramid_levels(flat, offs, R)
     return flat, offs
@@ -167,8 +200,7 @@ def anisotropic_pyramid(occ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class _Tables:
     E: np.ndarray           # (6, N, N, 3) cube maps
-    Wc: np.ndarray
-    Wr: np.ndarray
+    W: np.ndarray           # the residual through one diffuse cone's visibility SG
     G: np.ndarray           # (slots, 6, N, N, 3)
     L: np.ndarray | None = None   # (6, N, N) the residual's luminance (ray visibility weights)
 
@@ -268,16 +300,15 @@ class SGRelighter:
         self.sg: SGLighting | None = None
         self._dirty = set(range(len(self.objects)))
         self._occ: list[np.ndarray | None] = [None] * len(self.objects)
-        lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
-        c, side = (lo + hi) / 2, float((hi - lo).max()) * 1.25 + 1e-9
-        self.vox = side / self.R
-        self.origin = c - side / 2
         self._pyr: tuple[np.ndarray, np.ndarray] | None = None
         self._embree: Any = None
         self._plane_cache: tuple[int, list[tuple[np.ndarray, float] | None]] | None = None
+        self._rect_cache: tuple[int, np.ndarray, frozenset[int], np.ndarray] | None = None
         self._bound_cache: tuple[int, np.ndarray, np.ndarray] | None = None
         self.owner = np.concatenate([np.full(len(ob.rest), k, np.int64) for k, ob in enumerate(self.objects)])
         self._geometry = 0          # bumped by every deformation or move
+        self.vox, self.origin = 1.0, np.zeros(3)
+        self._fit_grid()
         self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
         self._lighting = 0          # bumped by every set_sg
 
@@ -309,8 +340,7 @@ class SGRelighter:
         a32 = amp.astype(np.float32)
         tabs = _Tables(
             (c.matrix(ax, lam, "cos", 0.0, D) @ a32).reshape(6, D, D, 3),
-            (c.matrix(ax, lam, "sg", self._lam_center, D) @ a32).reshape(6, D, D, 3),
-            (c.matrix(ax, lam, "sg", self._lam_ring, D) @ a32).reshape(6, D, D, 3),
+            (c.matrix(ax, lam, "sg", LAM_CONE, D) @ a32).reshape(6, D, D, 3),
             np.zeros((len(self._gloss), 6, G, G, 3), np.float32))
         for s, (e, n) in enumerate(zip(self._gloss, Ng, strict=True)):
             t = (c.matrix(ax, lam, "sg", e, n) @ a32).reshape(6, n, n, 3)
@@ -333,14 +363,6 @@ class SGRelighter:
     @staticmethod
     def _gloss_grid(e: float) -> int:
         return 17 if e <= 32 else 33 if e <= 128 else 65   # cube-face texels: ~5.3, 2.7, 1.4 deg
-
-    @property
-    def _lam_center(self) -> float:
-        return LAM_COS + LAM_CONE
-
-    @property
-    def _lam_ring(self) -> float:
-        return math.sqrt(LAM_COS ** 2 + LAM_CONE ** 2 + 2 * LAM_COS * LAM_CONE * math.cos(RING_TILT))
 
     # ---- geometry ----------------------------------------------------------------------------
     def _index(self, name: str) -> int:
@@ -405,11 +427,38 @@ class SGRelighter:
         return self._normals
 
     # ---- visibility --------------------------------------------------------------------------
+    def _voxel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of the objects the voxels hold (all but the rectangles; all if none)."""
+        rect = self._rects()[1]
+        keep = [ob for k, ob in enumerate(self.objects) if k not in rect] or self.objects
+        v = np.concatenate([self.vertices[ob.base:ob.base + len(ob.rest)] for ob in keep])
+        return v.min(axis=0), v.max(axis=0)
+
+    def _fit_grid(self) -> bool:
+        """Fit the voxel grid to the voxelised objects (1.25 x their longest side, so a floor's
+        extent does not coarsen the voxels of what stands on it); refitted, and everything
+        re-voxelised, when one leaves it. True when it changed."""
+        lo, hi = self._voxel_bounds()
+        top = self.origin + self.vox * self.R
+        if self._pyr is not None and np.all(lo >= self.origin) and np.all(hi <= top):
+            return False
+        c, side = (lo + hi) / 2, float((hi - lo).max()) * 1.25 + 1e-9
+        self.vox = side / self.R
+        self.origin = c - side / 2
+        self._dirty = set(range(len(self.objects)))
+        return True
+
     def _pyramid(self) -> tuple[np.ndarray, np.ndarray]:
         R = self.R
+        if self._dirty:
+            self._fit_grid()
         if self._dirty or self._pyr is None:
+            rect = self._rects()[1]
             for k in sorted(self._dirty):
                 ob = self.objects[k]
+                if k in rect:   # an exact occluder of the cones (rect_clear), not voxels
+                    self._occ[k] = None
+                    continue
                 occ = np.zeros(R ** 3, np.uint8)
                 voxelize(self.vertices[ob.base:ob.base + len(ob.rest)], ob.faces, self.origin, self.vox, R, occ)
                 # surfaces only (filling closed meshes' interiors was tried: worse, self-occlusion)
@@ -419,27 +468,27 @@ class SGRelighter:
             for o in self._occ:
                 if o is not None:
                     np.bitwise_or(tot, o, out=tot)
-            self._pyr = anisotropic_pyramid(tot.reshape(R, R, R))
+            self._pyr = anisotropic_pyramid(tot.reshape(R, R, R), None if self._pyr is None else self._pyr[0])
         return self._pyr
 
     def _cone_dirs(self, pos: np.ndarray, nrm: np.ndarray, wo: np.ndarray,
                    matid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 7 + 1 + P, 3) axes and (n, 8 + P) tan(half-angle): 7 diffuse cones, the
-        reflection cone (its Phong lobe's half-angle, per material), one per peak lobe."""
+        """(n, PEAK0 + P, 3) axes and (n, PEAK0 + P) tan(half-angle): the DIFFUSE_CONES diffuse
+        cones, the reflection cone (its Phong lobe's half-angle, per material), one per peak lobe."""
         pax, plam = self._peaks[0], self._peaks[1]
         n = len(pos)
-        dirs = np.zeros((n, 8 + len(plam), 3))
-        cones = np.zeros((n, 7, 3))
-        cone_frame(nrm, math.cos(RING_TILT), math.sin(RING_TILT), cones)
-        dirs[:, :7] = cones
+        dirs = np.zeros((n, PEAK0 + len(plam), 3))
+        cones = np.zeros((n, DIFFUSE_CONES, 3))
+        cone_frame(nrm, _PATTERN, cones)
+        dirs[:, :REFLECTION] = cones
         cn = np.einsum("ij,ij->i", nrm, wo)
-        dirs[:, 7] = 2 * cn[:, None] * nrm - wo
-        dirs[:, 8:] = pax[None]
-        tan = np.empty((n, 8 + len(plam)))
-        tan[:, :7] = math.tan(CONE_HALF)
+        dirs[:, REFLECTION] = 2 * cn[:, None] * nrm - wo
+        dirs[:, PEAK0:] = pax[None]
+        tan = np.empty((n, PEAK0 + len(plam)))
+        tan[:, :REFLECTION] = math.tan(CONE_HALF)
         e = self.mats[np.asarray(matid, np.int64), 7]
-        tan[:, 7] = np.tan(np.arccos(np.clip(1 - math.log(2) / np.maximum(e, 1.0), -1, 1)))
-        tan[:, 8:] = self._peak_half_tan()[None]
+        tan[:, REFLECTION] = np.tan(np.arccos(np.clip(1 - math.log(2) / np.maximum(e, 1.0), -1, 1)))
+        tan[:, PEAK0:] = self._peak_half_tan()[None]
         return dirs, tan
 
     def _thin(self) -> np.ndarray:
@@ -468,8 +517,11 @@ class SGRelighter:
         need = np.zeros(tan.shape, bool)
         centres, radii = self._bounds()
         planes = self._planes()
+        rect = self._rects()[1]
         half = np.arctan(tan)
         for j in range(len(self.objects)):
+            if j in rect:   # not in the voxels (rect_clear)
+                continue
             v = centres[j] - pos
             dist = np.linalg.norm(v, axis=1)
             inside = dist <= radii[j] * (1 + 1e-9)
@@ -484,31 +536,43 @@ class SGRelighter:
 
     def _trace(self, pos: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan: np.ndarray, first: int = 0,
                owner: np.ndarray | None = None, matid: np.ndarray | None = None) -> np.ndarray:
-        """Transmittance of the cones ``dirs[:, j]`` (cone ``first + j`` of the layout: 0-6
-        diffuse, 7 reflection, 8+ peaks) by the instance's visibility method; ``owner``: the
-        object each point lies on, if known (its own plane is then no occluder); ``matid``: the
-        points' materials, if known (a Lambert point's reflection cone is not traced: 1)."""
+        """Transmittance of the cones ``dirs[:, j]`` (cone ``first + j`` of the layout: diffuse
+        below REFLECTION, then the reflection cone, peaks from PEAK0) by the instance's visibility
+        method; ``owner``: the object each point lies on, if known (its own plane is then no
+        occluder); ``matid``: the points' materials, if known (a Lambert point's reflection cone
+        is not traced: 1)."""
         if self.visibility == "voxels":
             pyr, offs = self._pyramid()
             out = np.empty(tan.shape)
             # the peaks' shadows are Embree rays, not cones: a lamp's cone (0.2-4 deg) marched
             # through the grid is a voxel-wide blur that over-occludes near surfaces (studio_small_03,
             # Lambert: 9.9% per vertex with peak cones, 4.0% with 8 rays per broad peak)
-            peak = first + np.arange(tan.shape[1]) >= 8
+            peak = first + np.arange(tan.shape[1]) >= PEAK0
             cones = np.flatnonzero(~peak)
             if len(cones):
                 sub = np.empty((len(pos), len(cones)))
                 cd, ct = np.ascontiguousarray(dirs[:, cones]), np.ascontiguousarray(tan[:, cones])
                 need = self._needs_cone(pos, cd, ct, owner)
-                if matid is not None and first + cones[-1] >= 7:   # the reflection cone: Phong only
-                    need[self.mats[np.asarray(matid, np.int64), 0] != 1, 7 - first] = 0
+                lambert = np.zeros(len(pos), bool)
+                if matid is not None and first + cones[-1] >= REFLECTION:   # the reflection cone: Phong only
+                    lambert = self.mats[np.asarray(matid, np.int64), 0] != 1
+                    need[lambert, REFLECTION - first] = 0
                 trace_cones(np.ascontiguousarray(pos), np.ascontiguousarray(nrm), cd, ct, pyr, offs, self.R,
                             self.origin, self.vox, self.cone_start, self.cone_lift, self.cone_gain,
                             self.cone_footprint, need, sub)
+                rects, robj = self._rects()[0], self._rects()[2]
+                if len(rects):
+                    if first + cones[-1] >= REFLECTION:
+                        sub[lambert, REFLECTION - first] = 0.0   # untraced and unused: skip the rectangles
+                    rect_clear(np.ascontiguousarray(pos), cd, ct, rects, robj,
+                               np.full(len(pos), -1, np.int64) if owner is None else np.asarray(owner, np.int64),
+                               _RECT_G, _RECT_PHI, sub)
+                    if first + cones[-1] >= REFLECTION:
+                        sub[lambert, REFLECTION - first] = 1.0
                 out[:, cones] = sub
             thin = self._thin()
             for j in np.flatnonzero(peak):
-                p = first + j - 8
+                p = first + j - PEAK0
                 if thin[p]:
                     out[:, j] = self._shadow_rays(pos, nrm, dirs[:, j])
                 else:
@@ -579,6 +643,49 @@ class SGRelighter:
             self._plane_cache = (self._geometry, planes)
         return self._plane_cache[1]
 
+    def _rects(self) -> tuple[np.ndarray, frozenset[int], np.ndarray]:
+        """The planar objects that are rectangles (a floor, a wall, a table top): (Q, 17) rows for
+        :func:`~hostlink.relight.sgkernels.rect_clear`, their object indices as a set and as an
+        array. They occlude the cones exactly, not as voxels: a one-voxel floor sampled by a wide
+        cone lets 20-30% through (BENCHMARKS.md). A planar mesh is taken as a rectangle when its
+        area is that of its bounding rectangle in its plane (the principal axes of its vertices)
+        to 1e-6; other planar meshes stay voxels."""
+        if self._rect_cache is None or self._rect_cache[0] != self._geometry:
+            rows, objs = [], []
+            for k, pl in enumerate(self._planes()):
+                if pl is None:
+                    continue
+                n, c = pl
+                ob = self.objects[k]
+                v = self.vertices[ob.base:ob.base + len(ob.rest)]
+                o = v.mean(axis=0)
+                a1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+                a1 /= np.linalg.norm(a1)
+                xy = (v - o) @ np.stack([a1, np.cross(n, a1)], axis=1)
+                tri = v[ob.faces]
+                area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+                # a rectangle's sides lie along some of its triangles' edges: try each edge direction
+                ed = xy[ob.faces[:, [1, 2, 0]]] - xy[ob.faces]
+                ang = np.unique(np.round(np.arctan2(ed[..., 1], ed[..., 0]).ravel() % (math.pi / 2), 9))
+                rot = np.stack([np.cos(ang), np.sin(ang)], axis=1)          # candidate e1 per angle
+                pu = xy @ rot.T
+                pv = xy @ np.stack([-rot[:, 1], rot[:, 0]], axis=1).T
+                boxes = np.ptp(pu, axis=0) * np.ptp(pv, axis=0)
+                best = int(np.argmin(boxes))
+                box = float(boxes[best])
+                if box <= 0 or abs(area - box) > 1e-6 * box:
+                    continue
+                c1, s1 = rot[best]
+                e1 = c1 * a1 + s1 * np.cross(n, a1)
+                e2 = np.cross(n, e1)
+                uv = (v - o) @ np.stack([e1, e2], axis=1)
+                lo, hi = uv.min(axis=0), uv.max(axis=0)
+                rows.append(np.concatenate([n, [c], o, e1, e2, [lo[0], hi[0], lo[1], hi[1]]]))
+                objs.append(k)
+            self._rect_cache = (self._geometry, np.array(rows, np.float64).reshape(-1, 17),
+                                frozenset(objs), np.array(objs, np.int64))
+        return self._rect_cache[1], self._rect_cache[2], self._rect_cache[3]
+
     def _occluders(self, origins: np.ndarray, dirs: np.ndarray) -> Any:
         """The Embree scene for rays from ``origins`` along any of ``dirs``, without the planar
         objects none of them can reach (every origin on one side, every direction pointing away:
@@ -617,14 +724,14 @@ class SGRelighter:
         n, k = tan.shape
         out = np.empty((n, k))
         pax, plam = self._peaks[0], self._peaks[1]
-        diffuse = [j for j in range(k) if first + j < 7]
-        if diffuse:   # the residual's visibility, measured: one light-weighted fraction for all 7
+        diffuse = [j for j in range(k) if first + j < REFLECTION]
+        if diffuse:   # the residual's visibility, measured: one light-weighted fraction for all cones
             out[:, diffuse] = self._residual_ray_visibility(es, eps, pos, nrm)[:, None]
         for j in range(k):
             c = first + j
-            if c >= 8:
-                out[:, j] = self._lobe_rays(pos, nrm, pax[c - 8], float(plam[c - 8]), RAYS_PER_PEAK)
-            elif c == 7:   # the reflection cone: rays uniform within it
+            if c >= PEAK0:
+                out[:, j] = self._lobe_rays(pos, nrm, pax[c - PEAK0], float(plam[c - PEAK0]), RAYS_PER_PEAK)
+            elif c == REFLECTION:   # the reflection cone: rays uniform within it
                 m = RAYS_PER_CONE
                 g = (np.arange(m) + 0.5) / m
                 phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
@@ -690,14 +797,11 @@ class SGRelighter:
                      t.E, t.G, pax, plam, pamp, pF, np.ascontiguousarray(vres), vspec, vpeak, out)
         return out
 
-    def _residual_weights(self, nrm: np.ndarray, cones: np.ndarray, vis7: np.ndarray) -> np.ndarray:
+    def _residual_weights(self, cones: np.ndarray, vis: np.ndarray) -> np.ndarray:
         """``V_res`` (n, 3): the cones' transmittances weighted by the light each carries now."""
         assert self._tables is not None
-        t = self._tables
-        out = np.empty((len(nrm), 3))
-        residual_visibility(np.ascontiguousarray(nrm), np.ascontiguousarray(cones), np.ascontiguousarray(vis7),
-                            t.Wc, t.Wr, MU_COS, MU_COS * math.exp(self._lam_ring - LAM_COS - LAM_CONE),
-                            LAM_COS, LAM_CONE, out)
+        out = np.empty((len(cones), 3))
+        residual_visibility(np.ascontiguousarray(cones), np.ascontiguousarray(vis), self._tables.W, out)
         return out
 
     def _visibility_rows(self, matid: np.ndarray, pos: np.ndarray, nrm: np.ndarray, wo: np.ndarray,
@@ -707,7 +811,8 @@ class SGRelighter:
             raise InputError("no lighting yet: call set_sg or set_equirect first", param="lights")
         dirs, tan = self._cone_dirs(pos, nrm, wo, matid)
         out = self._trace(pos, nrm, dirs, tan, owner=owner, matid=matid)
-        return self._residual_weights(nrm, dirs[:, :7], out[:, :7]), out[:, 7].copy(), out[:, 8:].copy()
+        return (self._residual_weights(dirs[:, :REFLECTION], out[:, :REFLECTION]), out[:, REFLECTION].copy(),
+                out[:, PEAK0:].copy())
 
     def vertex_radiance(self, eye: np.ndarray, vidx: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) outgoing radiance of vertices ``vidx`` (all by default) towards ``eye``."""
@@ -739,7 +844,7 @@ class SGRelighter:
             rows = np.flatnonzero(nrm @ pax[p] > -sin_half[p])
             if len(rows):
                 out[rows, j] = self._trace(pos[rows], nrm[rows], np.broadcast_to(pax[p], (len(rows), 1, 3)),
-                                           np.full((len(rows), 1), tan[p]), first=8 + int(p))[:, 0]
+                                           np.full((len(rows), 1), tan[p]), first=PEAK0 + int(p))[:, 0]
             count += len(rows)
         return out, count
 
@@ -787,16 +892,16 @@ class SGRelighter:
             wo = eye - vp
             wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
             dirs, tan = self._cone_dirs(vp, vn, wo, self.matid[vis_v])
-            wide = np.zeros((len(self.vertices), 8))
-            wide[vis_v] = self._trace(vp, vn, dirs[:, :8], tan[:, :8], owner=self.owner[vis_v],
+            wide = np.zeros((len(self.vertices), PEAK0))
+            wide[vis_v] = self._trace(vp, vn, dirs[:, :PEAK0], tan[:, :PEAK0], owner=self.owner[vis_v],
                                       matid=self.matid[vis_v])
-            traced["wide_cones"] = float(8 * len(vis_v))
+            traced["wide_cones"] = float(PEAK0 * len(vis_v))
             f = self._frame = {"key": key, "cov": cov, "pos": pos, "nrm": nrm, "matid": matid,
-                               "vis_v": vis_v, "fv": fv, "bary": b, "cones": dirs[:, :7].copy(),
-                               "vis7": wide[vis_v, :7].copy(),
+                               "vis_v": vis_v, "fv": fv, "bary": b, "cones": dirs[:, :REFLECTION].copy(),
+                               "vis_d": wide[vis_v, :REFLECTION].copy(),
                                "pix": np.flatnonzero(cov),
                                "peaks": None, "vpeak": None, "lighting": None, "vres": None}
-            f["vspec"] = self._at_pixels(f, wide[:, 7:8])[:, 0]
+            f["vspec"] = self._at_pixels(f, wide[:, REFLECTION:PEAK0])[:, 0]
         pax, plam = self._peaks[0], self._peaks[1]
         pkey = (pax.tobytes(), plam.tobytes())
         if f["peaks"] != pkey:
@@ -820,7 +925,7 @@ class SGRelighter:
             # visible triangles (their cones), interpolated (the cones' transmittances are anyway)
             at = np.zeros((len(self.vertices), 3))
             vv = f["vis_v"]
-            at[vv] = self._residual_weights(self._normals[vv], f["cones"], f["vis7"])
+            at[vv] = self._residual_weights(f["cones"], f["vis_d"])
             f["vres"], f["lighting"] = self._at_pixels(f, at), self._lighting
         rad = self.shade(f["pos"], f["nrm"], f["matid"], eye, (f["vres"], f["vspec"], f["vpeak"]))
         img = np.zeros((*f["cov"].shape, 3), np.float32)

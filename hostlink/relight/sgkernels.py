@@ -17,10 +17,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["cone_frame", "interpolate", "residual_visibility", "scatter_pixels", "shade_points", "trace_cones", "voxelize"]
+__all__ = ["cone_frame", "interpolate", "rect_clear", "residual_visibility", "scatter_pixels", "shade_points", "trace_cones", "voxelize"]
 
-LAM_COS = 2.133     # the clamped cosine as one SG (Wang et al. 2009): mu 1.17, lambda 2.133
-MU_COS = 1.17
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -72,19 +70,17 @@ def _onb(nx: float, ny: float, nz: float) -> tuple[float, float, float, float, f
 
 
 @njit(cache=True, fastmath=True)
-def cone_frame(n: np.ndarray, ring_cos: float, ring_sin: float, out: np.ndarray) -> None:
-    """The 7 diffuse cone axes of each normal: ``out[i, 0] = n``, ``out[i, 1..6]`` tilted by the
-    ring angle at azimuths k 60 deg about n. ``out`` is (N, 7, 3)."""
+def cone_frame(n: np.ndarray, local: np.ndarray, out: np.ndarray) -> None:
+    """The diffuse cone axes of each normal: ``out[i, k] = local[k, 0] t + local[k, 1] b +
+    local[k, 2] n`` in the normal's frame (:func:`_onb`). ``out`` is (N, K, 3), ``local`` (K, 3)."""
     for i in range(n.shape[0]):
         nx, ny, nz = n[i, 0], n[i, 1], n[i, 2]
         tx, ty, tz, bx, by, bz = _onb(nx, ny, nz)
-        out[i, 0, 0], out[i, 0, 1], out[i, 0, 2] = nx, ny, nz
-        for k in range(6):
-            c = math.cos(k * math.pi / 3)
-            s = math.sin(k * math.pi / 3)
-            out[i, k + 1, 0] = ring_cos * nx + ring_sin * (c * tx + s * bx)
-            out[i, k + 1, 1] = ring_cos * ny + ring_sin * (c * ty + s * by)
-            out[i, k + 1, 2] = ring_cos * nz + ring_sin * (c * tz + s * bz)
+        for k in range(local.shape[0]):
+            u, v, w = local[k, 0], local[k, 1], local[k, 2]
+            out[i, k, 0] = u * tx + v * bx + w * nx
+            out[i, k, 1] = u * ty + v * by + w * ny
+            out[i, k, 2] = u * tz + v * bz + w * nz
 
 
 @njit(cache=True, fastmath=True, parallel=True)
@@ -108,42 +104,91 @@ def scatter_pixels(idx: np.ndarray, rad: np.ndarray, img: np.ndarray) -> None:
 
 
 @njit(cache=True, fastmath=True, parallel=True)
-def residual_visibility(nrm: np.ndarray, cones: np.ndarray, vis7: np.ndarray, tabWc: np.ndarray,
-                        tabWr: np.ndarray, kc: float, kr: float, lam_cos: float, lam_cone: float,
-                        out: np.ndarray) -> None:
-    """``V_res`` per point and channel (N, 3): the 7 cones' transmittances ``vis7`` (N, 7) along
-    ``cones`` (N, 7, 3) weighted by the residual light each carries, ``tabWc`` / ``tabWr`` (the
-    light through the centre / ring visibility lobes: SG kernels of the products cosine x cone
-    lobe, looked up at the product's axis) times their amplitude factors ``kc`` / ``kr``. A point
-    whose cones carry no light gets the cones' mean."""
-    for i in prange(nrm.shape[0]):
-        nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+def residual_visibility(cones: np.ndarray, vis: np.ndarray, tabW: np.ndarray, out: np.ndarray) -> None:
+    """``V_res`` per point and channel (N, 3): the cones' transmittances ``vis`` (N, K) along
+    ``cones`` (N, K, 3, cosine-distributed about the normal) weighted by the residual light each
+    carries, ``tabW`` (6, D, D, 3): the lighting filtered by one cone's visibility SG, looked up at
+    the cone's axis. A point whose cones carry no light gets the cones' mean."""
+    K = cones.shape[1]
+    for i in prange(cones.shape[0]):
         v0 = v1 = v2 = 0.0
         s0 = s1 = s2 = 0.0
-        mean7 = 0.0
-        for c in range(7):
-            rx = lam_cos * nx + lam_cone * cones[i, c, 0]
-            ry = lam_cos * ny + lam_cone * cones[i, c, 1]
-            rz = lam_cos * nz + lam_cone * cones[i, c, 2]
-            rl = math.sqrt(rx * rx + ry * ry + rz * rz)
-            if c == 0:
-                w0, w1, w2 = _dir_lookup3(tabWc, rx / rl, ry / rl, rz / rl)
-                k = kc
-            else:
-                w0, w1, w2 = _dir_lookup3(tabWr, rx / rl, ry / rl, rz / rl)
-                k = kr
-            w0, w1, w2 = max(k * w0, 0.0), max(k * w1, 0.0), max(k * w2, 0.0)
-            vc = vis7[i, c]
+        mean = 0.0
+        for c in range(K):
+            w0, w1, w2 = _dir_lookup3(tabW, cones[i, c, 0], cones[i, c, 1], cones[i, c, 2])
+            w0, w1, w2 = max(w0, 0.0), max(w1, 0.0), max(w2, 0.0)
+            vc = vis[i, c]
             v0 += w0 * vc
             v1 += w1 * vc
             v2 += w2 * vc
             s0 += w0
             s1 += w1
             s2 += w2
-            mean7 += vc / 7.0
-        out[i, 0] = v0 / s0 if s0 > 1e-30 else mean7
-        out[i, 1] = v1 / s1 if s1 > 1e-30 else mean7
-        out[i, 2] = v2 / s2 if s2 > 1e-30 else mean7
+            mean += vc / K
+        out[i, 0] = v0 / s0 if s0 > 1e-30 else mean
+        out[i, 1] = v1 / s1 if s1 > 1e-30 else mean
+        out[i, 2] = v2 / s2 if s2 > 1e-30 else mean
+
+
+@njit(cache=True, fastmath=True, parallel=True)
+def rect_clear(pos: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray, rects: np.ndarray,
+               rect_obj: np.ndarray, owner: np.ndarray, g: np.ndarray, phi: np.ndarray,
+               out: np.ndarray) -> None:
+    """Multiply ``out[i, k]`` by the fraction of cone ``k``'s rays from ``pos[i]`` (axis
+    ``dirs[i, k]``, ``tan(half angle) = tan_half[i, k]``; the rays uniform over the cap: cosines
+    ``1 - g (1 - cos alpha)``, azimuths ``phi``) that meet none of the rectangles ``rects`` (Q, 17):
+    plane normal and offset (``n . x = c``), corner origin, two in-plane unit axes, extents
+    ``[a0, a1] x [b0, b1]`` along them. Rectangle ``q`` is no occluder for points on object
+    ``rect_obj[q]`` (``owner``); a cone wholly on the far side of a rectangle's plane is not tested."""
+    m = g.shape[0]
+    for i in prange(pos.shape[0]):
+        px, py, pz = pos[i, 0], pos[i, 1], pos[i, 2]
+        for k in range(dirs.shape[1]):
+            if out[i, k] <= 0.0:
+                continue
+            ax, ay, az = dirs[i, k, 0], dirs[i, k, 1], dirs[i, k, 2]
+            ca = 1.0 / math.sqrt(1.0 + tan_half[i, k] * tan_half[i, k])
+            sa = math.sqrt(max(1.0 - ca * ca, 0.0))
+            near = False
+            for q in range(rects.shape[0]):
+                if rect_obj[q] == owner[i]:
+                    continue
+                side = rects[q, 0] * px + rects[q, 1] * py + rects[q, 2] * pz - rects[q, 3]
+                toward = -(rects[q, 0] * ax + rects[q, 1] * ay + rects[q, 2] * az) * (1.0 if side > 0 else -1.0)
+                if side != 0.0 and toward > -sa:
+                    near = True
+            if not near:
+                continue
+            tx, ty, tz, bx, by, bz = _onb(ax, ay, az)
+            free = 0
+            for r in range(m):
+                ct = 1.0 - g[r] * (1.0 - ca)
+                st = math.sqrt(max(1.0 - ct * ct, 0.0))
+                cp, sp = math.cos(phi[r]), math.sin(phi[r])
+                dx = ct * ax + st * (cp * tx + sp * bx)
+                dy = ct * ay + st * (cp * ty + sp * by)
+                dz = ct * az + st * (cp * tz + sp * bz)
+                hit = False
+                for q in range(rects.shape[0]):
+                    if rect_obj[q] == owner[i]:
+                        continue
+                    dn = rects[q, 0] * dx + rects[q, 1] * dy + rects[q, 2] * dz
+                    if dn == 0.0:
+                        continue
+                    t = (rects[q, 3] - (rects[q, 0] * px + rects[q, 1] * py + rects[q, 2] * pz)) / dn
+                    if t <= 0.0:
+                        continue
+                    hx = px + t * dx - rects[q, 4]
+                    hy = py + t * dy - rects[q, 5]
+                    hz = pz + t * dz - rects[q, 6]
+                    u = hx * rects[q, 7] + hy * rects[q, 8] + hz * rects[q, 9]
+                    v = hx * rects[q, 10] + hy * rects[q, 11] + hz * rects[q, 12]
+                    if rects[q, 13] <= u <= rects[q, 14] and rects[q, 15] <= v <= rects[q, 16]:
+                        hit = True
+                        break
+                if not hit:
+                    free += 1
+            out[i, k] *= free / m
 
 
 @njit(cache=True, fastmath=True, parallel=True)
@@ -274,7 +319,7 @@ def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: n
     ``k`` along ``dirs[i, k]`` with ``tan(half angle) = tan_half[i, k]``, from ``orig[i]`` lifted
     by ``lift`` voxels along ``nrm[i]``, starting ``start`` voxels out. Each step samples the
     pyramid at the level whose cell is ``footprint`` x the cone's diameter (a cell as wide as the
-    cone reaches back to the surface it starts from) and composites ``1 - (1 - occ)^(gain step / cell)``, skipping empty space by the level-3 cells front to back. Stops at 99% opacity or the grid's edge. Cones with ``need[i, k]`` false are clear (1) untraced."""
+    cone reaches back to the surface it starts from) and composites ``1 - (1 - occ)^(gain step / cell)``, skipping empty space by the level-3 cells front to back. Starts where the axis enters the grid (grown by R / 4 each side: a point may lie outside it), stops at 99% opacity or where the sampled level can read nothing more. Cones with ``need[i, k]`` false are clear (1) untraced."""
     nl = offs.shape[0] - 1
     for i in prange(orig.shape[0]):
         ox = (orig[i, 0] - origin[0]) / vox + lift * nrm[i, 0]
@@ -286,16 +331,34 @@ def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: n
                 continue
             dx, dy, dz = dirs[i, k, 0], dirs[i, k, 1], dirs[i, k, 2]
             th = tan_half[i, k]
-            t = start
+            # the axis's span within the grid grown by a quarter of it each side (a point may lie
+            # outside the grid: the grid holds the voxelised objects only; a coarse cell near the
+            # edge still reads the edge's cells)
+            t0, t1 = start, 1e30
+            for o_, d_ in ((ox, dx), (oy, dy), (oz, dz)):
+                if abs(d_) < 1e-12:
+                    if o_ < -0.25 * R or o_ > 1.25 * R:
+                        t1 = -1.0
+                else:
+                    ta = (-0.25 * R - o_) / d_
+                    tb = (1.25 * R - o_) / d_
+                    t0 = max(t0, min(ta, tb))
+                    t1 = min(t1, max(ta, tb))
+            t = t0
             a = 0.0
-            while a < 0.99:
+            while a < 0.99 and t <= t1:
                 px = ox + t * dx
                 py = oy + t * dy
                 pz = oz + t * dz
-                if px < -1 or py < -1 or pz < -1 or px > R + 1 or py > R + 1 or pz > R + 1:
-                    break
                 d = max(1.0, 2 * t * th)
                 c = max(1.0, footprint * d)   # the cell sampled: a fraction of the cone's width
+                e = 1.5 * c + 1.0             # beyond this outside the grid the level reads nothing
+                if px < -e or py < -e or pz < -e or px > R + e or py > R + e or pz > R + e:
+                    if ((px < -e and dx <= 0) or (py < -e and dy <= 0) or (pz < -e and dz <= 0)
+                            or (px > R + e and dx >= 0) or (py > R + e and dy >= 0) or (pz > R + e and dz >= 0)):
+                        break                 # leaving: nothing further on
+                    t += max(0.5, 0.5 * c)
+                    continue
                 if c < 4 and nl > 3:   # empty space: nothing in the level-3 (2-) cells about the point
                     if _sample(pyr[0], offs, R, 3, px, py, pz) == 0.0:
                         t += 4.0
@@ -317,7 +380,7 @@ def trace_cones(orig: np.ndarray, nrm: np.ndarray, dirs: np.ndarray, tan_half: n
                         if w > 1e-6 and l1 != l0:
                             sa = (1 - w) * sa + w * _sample(pyr[ax], offs, R, l1, px, py, pz)
                         occ += wa * sa
-                step = max(0.5, 0.5 * c)
+                step = max(1.0, 1.5 * c)
                 if occ > 0:
                     a += (1 - a) * (1 - (1 - min(occ, 1.0)) ** (gain * step / c))
                 t += step
