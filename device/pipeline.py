@@ -654,7 +654,7 @@ class _Geometry:
         self.inv_gain_out = np.where(geo_w > 0, np.bincount(row_of, d * ig * ig, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
         self.mean_gain = np.where(geo_w > 0, np.bincount(row_of, d, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
         self.geo_n = (d * ig).astype(np.float32)  # each entry's geometric weight (data / gain)
-        self.sharing = sample_sharing(ip, t.indices, d * ig, self.rows)  # (for the lamp tracker)
+        self.sharing = sample_sharing(ip, t.indices, d * ig, self.rows, row_of, geo_w)  # (for the lamp tracker)
         omega = equirect_row_solid_angle(height)[: height // 2]
         self.solid_angle_out = np.repeat(omega, 2 * height)
         resp = calibration.response

@@ -419,6 +419,9 @@ def test_sample_sharing_splits_a_regions_variance_exactly() -> None:
     region_var = float((a.sum(0) ** 2).sum())  # var(sum_j L_j), L = a x, var x_i = 1
     assert np.isclose(float(((a**2).sum(1) * k).sum()), region_var, rtol=1e-12)
     assert np.all(k >= 1 - 1e-12)
+    # the caller's row of each entry and row sums (the pipeline has them): the same answer
+    row_of = np.repeat(np.arange(n_out), np.diff(indptr))
+    assert np.allclose(sample_sharing(indptr, indices, dense[dense > 0], n_out, row_of, dense.sum(1)), k, rtol=1e-12)
     eye = np.arange(6)
     assert np.allclose(sample_sharing(np.arange(7), eye, np.ones(6), 6), 1.0)
     pairs = np.array([0, 2, 4, 6])  # rows 0 and 1 read inputs 0 and 1; row 2 alone reads 2 and 3

@@ -404,7 +404,8 @@ def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside:
 # ------------------------------------------------------------------------------------------------
 # What a table's rows share
 # ------------------------------------------------------------------------------------------------
-def sample_sharing(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray, rows: int) -> np.ndarray:
+def sample_sharing(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray, rows: int,
+                   row_of: np.ndarray | None = None, total: np.ndarray | None = None) -> np.ndarray:
     """Per output pixel ``j`` of a table's first ``rows`` rows, how much a sum over a region of
     output pixels varies more than the sum of their variances says, because neighbouring output
     pixels read the same fisheye pixels (``rows``,) float64, >= 1 where a row has entries.
@@ -416,13 +417,16 @@ def sample_sharing(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray,
     to ``a[j, i] / c_i``: ``var(region) = sum_j var L_j k_j`` with
     ``k_j = sum_i a[j, i] c_i / sum_i a[j, i]^2``. Near the horizon of a fisheye probe's
     equirect map ``k ~ 1.3``; towards the zenith, where a row of 512 output pixels reads a few
-    dozen fisheye pixels, it grows to 4-6 (16 rows down) and past 100 (the first row)."""
+    dozen fisheye pixels, it grows to 4-6 (16 rows down) and past 100 (the first row).
+    ``row_of`` (each entry's row) and ``total`` (each row's weight sum), when the caller has them."""
     ip = np.asarray(indptr[: rows + 1], np.int64)
     n = int(ip[-1])
     idx = np.asarray(indices[:n], np.int64)
     w = np.asarray(weights[:n], np.float64)
-    row_of = np.repeat(np.arange(rows), np.diff(ip))
-    total = np.bincount(row_of, w, rows)
+    if row_of is None:
+        row_of = np.repeat(np.arange(rows), np.diff(ip))
+    if total is None:
+        total = np.bincount(row_of, w, rows)
     a = w / np.maximum(total[row_of], 1e-300)
     col = np.bincount(idx, a, int(idx.max()) + 1 if n else 0)
     num = np.bincount(row_of, a * col[idx], rows)
