@@ -405,3 +405,50 @@ def test_rectangles_occlude_the_cones_exactly_and_the_grid_follows_the_objects(s
     err = _rel_rms(b, a)
     print(f"moved cow, ground against rays: {err:.4f}")
     assert err <= 0.05
+
+
+def test_a_wall_from_a_mesh_file_is_an_exact_rectangle(shared_data: Path, tmp_path: Path) -> None:
+    """A wall rotated 30 deg about the vertical and tilted, written with six decimals (as mesh
+    files are): still a plane and a rectangle (found along its triangles' edges, not the axes), so
+    an exact occluder: a cone aimed at its middle from in front is black, one aimed away clear,
+    one half over its top edge half through. Cut a corner triangle off and it is voxels."""
+    from hostlink.relight.scene import load_scene
+    from hostlink.relight.sg import SGRelighter
+
+    th = np.radians(30.0)
+    e1 = np.array([np.cos(th), 0.0, np.sin(th)]) * 2.0
+    n = np.cross(e1, [0.0, 1.0, 0.3])
+    n /= np.linalg.norm(n)
+    e2 = np.cross(n, e1 / 2.0) * 1.5
+    corner = np.array([-1.2, -0.73, -1.2])
+    for cut in (False, True):
+        k = 8
+        v = [corner + e1 * i / k + e2 * j / k for i in range(k + 1) for j in range(k + 1)]
+        f = []
+        for i in range(k):
+            for j in range(k):
+                a = i * (k + 1) + j
+                if not (cut and i == 0 and j == 0):
+                    f += [(a, a + k + 1, a + 1), (a + 1, a + k + 1, a + k + 2)]
+        obj = tmp_path / f"wall{int(cut)}.obj"
+        obj.write_text("".join(f"v {p[0]:f} {p[1]:f} {p[2]:f}\n" for p in v)
+                       + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f))
+        doc = _scene_doc(shared_data, "lambert")
+        doc["objects"].append({"name": "wall", "mesh": str(obj), "material": "floor"})
+        (tmp_path / "wall.json").write_text(json.dumps(doc))
+        rl = SGRelighter(load_scene(tmp_path / "wall.json"), visibility="voxels")
+        wall = [o.name for o in rl.objects].index("wall")
+        if cut:
+            assert wall not in rl._rects()[1]
+            continue
+        assert wall in rl._rects()[1]
+        mid = corner + 0.5 * (e1 + e2)
+        p = mid + 1.0 * n
+        away = -(mid - p) / np.linalg.norm(mid - p)
+        top = corner + e1 * 0.5 + e2                      # the middle of its upper edge
+        up = (top - p) / np.linalg.norm(top - p)
+        dirs = np.stack([-away, away, up])[None]
+        t = rl._trace(p[None], away[None], dirs, np.full((1, 3), 0.1), owner=np.array([-1]))
+        assert t[0, 0] < 0.02, t
+        assert t[0, 1] == 1.0, t
+        assert 0.35 < t[0, 2] < 0.65, t

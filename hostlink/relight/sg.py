@@ -639,7 +639,8 @@ class SGRelighter:
                     continue
                 n = n / ln
                 c = float(v[0] @ n)
-                planes.append((n, c) if float(np.abs(v @ n - c).max()) <= 1e-9 * ext else None)
+                # 1e-6 of its size: a mesh file's six decimals still make a plane
+                planes.append((n, c) if float(np.abs(v @ n - c).max()) <= 1e-6 * ext else None)
             self._plane_cache = (self._geometry, planes)
         return self._plane_cache[1]
 
@@ -648,8 +649,8 @@ class SGRelighter:
         :func:`~hostlink.relight.sgkernels.rect_clear`, their object indices as a set and as an
         array. They occlude the cones exactly, not as voxels: a one-voxel floor sampled by a wide
         cone lets 20-30% through (BENCHMARKS.md). A planar mesh is taken as a rectangle when its
-        area is that of its bounding rectangle in its plane (the principal axes of its vertices)
-        to 1e-6; other planar meshes stay voxels."""
+        area is that of its bounding rectangle in its plane (along one of its triangles' edges) to
+        1e-5; other planar meshes stay voxels."""
         if self._rect_cache is None or self._rect_cache[0] != self._geometry:
             rows, objs = [], []
             for k, pl in enumerate(self._planes()):
@@ -673,7 +674,7 @@ class SGRelighter:
                 boxes = np.ptp(pu, axis=0) * np.ptp(pv, axis=0)
                 best = int(np.argmin(boxes))
                 box = float(boxes[best])
-                if box <= 0 or abs(area - box) > 1e-6 * box:
+                if box <= 0 or abs(area - box) > 1e-5 * box:
                     continue
                 c1, s1 = rot[best]
                 e1 = c1 * a1 + s1 * np.cross(n, a1)
