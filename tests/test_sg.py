@@ -123,9 +123,16 @@ def test_region_excess_equals_the_dilation_reference() -> None:
 
 
 # ---- the fit on the shared maps ----------------------------------------------------------------
+@pytest.mark.parametrize("hemisphere", [False, True])
 @pytest.mark.parametrize("name", ENVMAPS)
-def test_sg_fit_keeps_energy_shrinks_the_residual_and_reproduces_irradiance(shared_data: Path, name: str) -> None:
+def test_sg_fit_keeps_energy_shrinks_the_residual_and_reproduces_irradiance(shared_data: Path, name: str,
+                                                                            hemisphere: bool) -> None:
+    """Each map as it is and as a probe sees it (the lower half black). A hemisphere's peaks are
+    judged against its own mean, not the sphere's: with the sphere's, lebombo's bright sky became
+    3 peaks and its glossy error 5.09% (sphere: 0 peaks, 1.61%)."""
     m = _load(shared_data, name)
+    if hemisphere:
+        m[m.shape[0] // 2:] = 0
     sg = fit_sg(m)
     total = equirect_integral(m) @ Y
     assert abs(float(sg.energy().sum(axis=0) @ Y) / total - 1) <= 0.01

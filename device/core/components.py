@@ -17,13 +17,17 @@ DEFAULT_CONTRAST = 20.0
 
 
 def peak_threshold(lum: np.ndarray, omega_row: np.ndarray, relative: float = DEFAULT_RELATIVE,
-                   contrast: float = DEFAULT_CONTRAST) -> float:
+                   contrast: float = DEFAULT_CONTRAST, lit_rows: int | None = None) -> float:
     """Automatic luminance threshold ``max(relative * max, contrast * mean)``.
 
     ``mean`` is the solid-angle-weighted mean luminance (integral / 4 pi): a peak must stand
     ``contrast`` times above the average sky and within ``1/relative`` of the brightest pixel.
+    ``lit_rows``: only the first rows hold light (a probe's hemisphere), so the mean is over
+    their solid angle, not the sphere's (which would halve it and make a bright sky a peak).
     """
-    mean = float((lum.astype(np.float64).sum(axis=1) * omega_row).sum() / (4 * np.pi))
+    lum64 = lum.astype(np.float64)
+    area = 4 * np.pi if lit_rows is None else float(omega_row[:lit_rows].sum()) * lum.shape[1]
+    mean = float((lum64.sum(axis=1) * omega_row).sum() / max(area, 1e-300))
     return max(relative * float(lum.max(initial=0.0)), contrast * mean)
 
 

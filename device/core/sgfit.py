@@ -325,7 +325,7 @@ def _peaks(full: np.ndarray, rows: int, max_peaks: int, min_fraction: float, rel
     if not total > 0:
         return [], 0.0
     c_lum = c_pow / c_omega[:, None]
-    t = peak_threshold(c_lum, c_omega, relative, contrast)
+    t = peak_threshold(c_lum, c_omega, relative, contrast, -(-rows // f))
     labels, n = sphere_labels(c_lum > t)
     if n == 0:
         return [], total
