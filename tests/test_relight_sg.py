@@ -388,6 +388,7 @@ def test_rectangles_occlude_the_cones_exactly_and_the_grid_follows_the_objects(s
     corner = int(np.argmin(v[:, 0] + v[:, 2]))
     keep = ~np.any(ground.faces == corner, axis=1)
     ground.faces = ground.faces[keep]
+    ground.version += 1
     rl._geometry += 1
     assert rl._rects()[1] == frozenset()
     # move the cow 1.2 m along x: out of the grid, which follows it; the ground in its shadow

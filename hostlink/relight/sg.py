@@ -36,7 +36,7 @@ Choices the paper leaves open, and why:
 - **Visibility**, two ways. ``"voxels"`` (the paper's, for the residual and the reflection
   cone): the scene voxelised (every triangle's voxels, per object, re-voxelised only for objects
   that moved or deformed: dirty flags), per-axis occupancy mip pyramids, cones traced front to
-  back (:func:`~hostlink.relight.sgkernels.trace_cones`, one sampled cell per step), each
+  back (:func:`~hostlink.relight.sgkernels.trace_cones`, a sample every 1.5 sampled cells), each
   sample's opacity raised to ``cone_gain`` = 0.8 (compositing samples as independent occluders
   over-occludes: a cone's samples through one opaque object are correlated). **Rectangles** (a
   floor, a wall, a table top: planar objects whose area is their bounding rectangle's) are no
@@ -51,7 +51,7 @@ Choices the paper leaves open, and why:
   grid (the sun), else ``PEAK_RAYS`` = 8 drawn from the lobe; in :meth:`SGRelighter.render` the
   hard ones per pixel, the soft ones per vertex of the visible triangles, interpolated.
   ``"rays"`` (the exact baseline): Embree rays, 16 per cone uniformly within it and 32 per peak
-  drawn from the lobe's own distribution, cosine-weighted; the residual's visibility by 7 x 16
+  drawn from the lobe's own distribution, cosine-weighted; the residual's visibility by 112
   cosine-distributed rays weighted by its radiance.
 """
 
@@ -92,7 +92,8 @@ RECT_RAYS = 32             # rays per cone against the rectangles (exact occlude
 RADIANCE_GRID = 17         # cube-face side of the residual radiance table (ray weights)
 DIFFUSE_GRID = 13          # cube-face side of the diffuse tables (smooth kernels: ~7 deg texels)
 ZONAL_SAMPLES = 1025
-RAYS_PER_CONE = 16
+RAYS_PER_CONE = 16         # rays uniform within the reflection cone, with rays
+RESIDUAL_RAYS = 112        # cosine-distributed rays for the residual's visibility, with rays
 RAYS_PER_PEAK = 32
 THIN_PEAK_VOXELS = 2.0     # peaks narrower than this across the grid: one shadow ray each
 PEAK_RAYS = 8              # rays per broader peak, with voxels (drawn from the lobe)
@@ -114,7 +115,8 @@ def _diffuse_pattern(K: int) -> np.ndarray:
 
 
 _PATTERN = _diffuse_pattern(DIFFUSE_CONES)
-_RECT_G, _RECT_PHI = _fibonacci(RECT_RAYS)
+_RECT_G, _rect_phi = _fibonacci(RECT_RAYS)
+_RECT_COS, _RECT_SIN = np.cos(_rect_phi), np.sin(_rect_phi)
 
 
 def _grid_dirs(N: int) -> np.ndarray:
@@ -253,6 +255,9 @@ class _Object:
     shape: np.ndarray | None = None                 # the current shape (set_vertices), unposed
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))   # the pose (move)
     translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    version: int = 0        # bumped whenever its vertices change (_place)
+    # its plane (n, c) and rectangle row (rect_clear's 17 numbers), of ``version`` (_shape)
+    shape_info: tuple[int, tuple[np.ndarray, float] | None, np.ndarray | None] | None = None
 
 
 class SGRelighter:
@@ -302,12 +307,11 @@ class SGRelighter:
         self._occ: list[np.ndarray | None] = [None] * len(self.objects)
         self._pyr: tuple[np.ndarray, np.ndarray] | None = None
         self._embree: Any = None
-        self._plane_cache: tuple[int, list[tuple[np.ndarray, float] | None]] | None = None
         self._rect_cache: tuple[int, np.ndarray, frozenset[int], np.ndarray] | None = None
         self._bound_cache: tuple[int, np.ndarray, np.ndarray] | None = None
         self.owner = np.concatenate([np.full(len(ob.rest), k, np.int64) for k, ob in enumerate(self.objects)])
         self._geometry = 0          # bumped by every deformation or move
-        self.vox, self.origin = 1.0, np.zeros(3)
+        self.vox, self.origin = 0.0, np.zeros(3)    # no grid yet (_fit_grid)
         self._fit_grid()
         self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
         self._lighting = 0          # bumped by every set_sg
@@ -393,6 +397,7 @@ class SGRelighter:
         self.vertices[ob.base:ob.base + len(v)] = v
         self._normals[ob.base:ob.base + len(v)] = vertex_normals(Mesh(v, ob.faces))
         self._dirty.add(k)
+        ob.version += 1
         self._geometry += 1
 
     def set_frame(self, k: int) -> None:
@@ -434,19 +439,17 @@ class SGRelighter:
         v = np.concatenate([self.vertices[ob.base:ob.base + len(ob.rest)] for ob in keep])
         return v.min(axis=0), v.max(axis=0)
 
-    def _fit_grid(self) -> bool:
+    def _fit_grid(self) -> None:
         """Fit the voxel grid to the voxelised objects (1.25 x their longest side, so a floor's
         extent does not coarsen the voxels of what stands on it); refitted, and everything
-        re-voxelised, when one leaves it. True when it changed."""
+        re-voxelised, when one leaves it."""
         lo, hi = self._voxel_bounds()
-        top = self.origin + self.vox * self.R
-        if self._pyr is not None and np.all(lo >= self.origin) and np.all(hi <= top):
-            return False
+        if self.vox > 0 and np.all(lo >= self.origin) and np.all(hi <= self.origin + self.vox * self.R):
+            return
         c, side = (lo + hi) / 2, float((hi - lo).max()) * 1.25 + 1e-9
         self.vox = side / self.R
         self.origin = c - side / 2
         self._dirty = set(range(len(self.objects)))
-        return True
 
     def _pyramid(self) -> tuple[np.ndarray, np.ndarray]:
         R = self.R
@@ -552,23 +555,19 @@ class SGRelighter:
             if len(cones):
                 sub = np.empty((len(pos), len(cones)))
                 cd, ct = np.ascontiguousarray(dirs[:, cones]), np.ascontiguousarray(tan[:, cones])
-                need = self._needs_cone(pos, cd, ct, owner)
-                lambert = np.zeros(len(pos), bool)
+                used = np.ones(ct.shape, np.uint8)
                 if matid is not None and first + cones[-1] >= REFLECTION:   # the reflection cone: Phong only
-                    lambert = self.mats[np.asarray(matid, np.int64), 0] != 1
-                    need[lambert, REFLECTION - first] = 0
+                    used[self.mats[np.asarray(matid, np.int64), 0] != 1, REFLECTION - first] = 0
+                need = self._needs_cone(pos, cd, ct, owner) & used
                 trace_cones(np.ascontiguousarray(pos), np.ascontiguousarray(nrm), cd, ct, pyr, offs, self.R,
                             self.origin, self.vox, self.cone_start, self.cone_lift, self.cone_gain,
                             self.cone_footprint, need, sub)
-                rects, robj = self._rects()[0], self._rects()[2]
+                rects, _, robj = self._rects()
                 if len(rects):
-                    if first + cones[-1] >= REFLECTION:
-                        sub[lambert, REFLECTION - first] = 0.0   # untraced and unused: skip the rectangles
-                    rect_clear(np.ascontiguousarray(pos), cd, ct, rects, robj,
+                    side = pos @ rects[:, :3].T - rects[:, 3]           # (n, Q): each point's side of each plane
+                    rect_clear(np.ascontiguousarray(pos), cd, ct, np.ascontiguousarray(side), rects, robj,
                                np.full(len(pos), -1, np.int64) if owner is None else np.asarray(owner, np.int64),
-                               _RECT_G, _RECT_PHI, sub)
-                    if first + cones[-1] >= REFLECTION:
-                        sub[lambert, REFLECTION - first] = 1.0
+                               _RECT_G, _RECT_COS, _RECT_SIN, used, sub)
                 out[:, cones] = sub
             thin = self._thin()
             for j in np.flatnonzero(peak):
@@ -588,8 +587,7 @@ class SGRelighter:
 
         eps = scene_eps(self.scene)
         n = len(pos)
-        g = (np.arange(m) + 0.5) / m
-        phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
+        g, phi = _fibonacci(m)
         ct = np.clip(1 + np.log(g + (1 - g) * math.exp(-2 * min(lam, 700.0))) / max(lam, 1e-9), -1, 1)
         st = np.sqrt(1 - ct * ct)
         ax = np.asarray(axis, np.float64)
@@ -623,68 +621,71 @@ class SGRelighter:
             scenes[skip] = build_embree(meshes) if meshes else None
         return scenes[skip]
 
+    def _shape(self, k: int) -> tuple[tuple[np.ndarray, float] | None, np.ndarray | None]:
+        """Object ``k``'s plane ``(n, c)`` (``n . x = c``) if all its vertices lie on one (to 1e-6
+        of its size: a mesh file's six decimals still make a plane), and, if that plane's mesh is
+        a rectangle, its row for :func:`~hostlink.relight.sgkernels.rect_clear` (normal, offset,
+        corner origin, two in-plane unit axes, extents): a planar mesh is a rectangle when its area
+        is that of its bounding rectangle in its plane (along one of its triangles' edges) to
+        1e-5. Computed again only when the object changed (a deforming cow does not recount the
+        floor's 34k triangles every frame)."""
+        ob = self.objects[k]
+        if ob.shape_info is not None and ob.shape_info[0] == ob.version:
+            return ob.shape_info[1], ob.shape_info[2]
+        v = self.vertices[ob.base:ob.base + len(ob.rest)]
+        tri = v[ob.faces]
+        cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n = cr.sum(axis=0)
+        ln = float(np.linalg.norm(n))
+        ext = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+        plane, row = None, None
+        if ln > 0 and ext > 0:
+            n = n / ln
+            c = float(v[0] @ n)
+            if float(np.abs(v @ n - c).max()) <= 1e-6 * ext:
+                plane = (n, c)
+                row = self._rect_row(v, ob.faces, n, c, 0.5 * float(np.linalg.norm(cr, axis=1).sum()))
+        ob.shape_info = (ob.version, plane, row)
+        return plane, row
+
+    @staticmethod
+    def _rect_row(v: np.ndarray, faces: np.ndarray, n: np.ndarray, c: float, area: float) -> np.ndarray | None:
+        """The rectangle row of a planar mesh (see :meth:`_shape`), or None if it is no rectangle."""
+        o = v.mean(axis=0)
+        a1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+        a1 /= np.linalg.norm(a1)
+        xy = (v - o) @ np.stack([a1, np.cross(n, a1)], axis=1)
+        # a rectangle's sides lie along some of its triangles' edges: try each edge direction
+        ed = xy[faces[:, [1, 2, 0]]] - xy[faces]
+        ang = np.unique(np.round(np.arctan2(ed[..., 1], ed[..., 0]).ravel() % (math.pi / 2), 9))
+        rot = np.stack([np.cos(ang), np.sin(ang)], axis=1)          # candidate e1 per angle
+        pu = xy @ rot.T
+        pv = xy @ np.stack([-rot[:, 1], rot[:, 0]], axis=1).T
+        boxes = np.ptp(pu, axis=0) * np.ptp(pv, axis=0)
+        best = int(np.argmin(boxes))
+        box = float(boxes[best])
+        if box <= 0 or abs(area - box) > 1e-5 * box:
+            return None
+        c1, s1 = rot[best]
+        e1 = c1 * a1 + s1 * np.cross(n, a1)
+        e2 = np.cross(n, e1)
+        uv = (v - o) @ np.stack([e1, e2], axis=1)
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        return np.concatenate([n, [c], o, e1, e2, [lo[0], hi[0], lo[1], hi[1]]])
+
     def _planes(self) -> list[tuple[np.ndarray, float] | None]:
-        """Per object, its plane ``(n, c)`` (``n . x = c``) if all its vertices lie on one, else None."""
-        if self._plane_cache is None or self._plane_cache[0] != self._geometry:
-            planes: list[tuple[np.ndarray, float] | None] = []
-            for ob in self.objects:
-                v = self.vertices[ob.base:ob.base + len(ob.rest)]
-                tri = v[ob.faces]
-                cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                n = cr.sum(axis=0)
-                ln = float(np.linalg.norm(n))
-                ext = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
-                if ln <= 0 or ext <= 0:
-                    planes.append(None)
-                    continue
-                n = n / ln
-                c = float(v[0] @ n)
-                # 1e-6 of its size: a mesh file's six decimals still make a plane
-                planes.append((n, c) if float(np.abs(v @ n - c).max()) <= 1e-6 * ext else None)
-            self._plane_cache = (self._geometry, planes)
-        return self._plane_cache[1]
+        """Per object, its plane ``(n, c)`` or None (:meth:`_shape`)."""
+        return [self._shape(k)[0] for k in range(len(self.objects))]
 
     def _rects(self) -> tuple[np.ndarray, frozenset[int], np.ndarray]:
         """The planar objects that are rectangles (a floor, a wall, a table top): (Q, 17) rows for
         :func:`~hostlink.relight.sgkernels.rect_clear`, their object indices as a set and as an
         array. They occlude the cones exactly, not as voxels: a one-voxel floor sampled by a wide
-        cone lets 20-30% through (BENCHMARKS.md). A planar mesh is taken as a rectangle when its
-        area is that of its bounding rectangle in its plane (along one of its triangles' edges) to
-        1e-5; other planar meshes stay voxels."""
+        cone lets 20-30% through (BENCHMARKS.md); other planar meshes stay voxels."""
         if self._rect_cache is None or self._rect_cache[0] != self._geometry:
-            rows, objs = [], []
-            for k, pl in enumerate(self._planes()):
-                if pl is None:
-                    continue
-                n, c = pl
-                ob = self.objects[k]
-                v = self.vertices[ob.base:ob.base + len(ob.rest)]
-                o = v.mean(axis=0)
-                a1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
-                a1 /= np.linalg.norm(a1)
-                xy = (v - o) @ np.stack([a1, np.cross(n, a1)], axis=1)
-                tri = v[ob.faces]
-                area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
-                # a rectangle's sides lie along some of its triangles' edges: try each edge direction
-                ed = xy[ob.faces[:, [1, 2, 0]]] - xy[ob.faces]
-                ang = np.unique(np.round(np.arctan2(ed[..., 1], ed[..., 0]).ravel() % (math.pi / 2), 9))
-                rot = np.stack([np.cos(ang), np.sin(ang)], axis=1)          # candidate e1 per angle
-                pu = xy @ rot.T
-                pv = xy @ np.stack([-rot[:, 1], rot[:, 0]], axis=1).T
-                boxes = np.ptp(pu, axis=0) * np.ptp(pv, axis=0)
-                best = int(np.argmin(boxes))
-                box = float(boxes[best])
-                if box <= 0 or abs(area - box) > 1e-5 * box:
-                    continue
-                c1, s1 = rot[best]
-                e1 = c1 * a1 + s1 * np.cross(n, a1)
-                e2 = np.cross(n, e1)
-                uv = (v - o) @ np.stack([e1, e2], axis=1)
-                lo, hi = uv.min(axis=0), uv.max(axis=0)
-                rows.append(np.concatenate([n, [c], o, e1, e2, [lo[0], hi[0], lo[1], hi[1]]]))
-                objs.append(k)
-            self._rect_cache = (self._geometry, np.array(rows, np.float64).reshape(-1, 17),
-                                frozenset(objs), np.array(objs, np.int64))
+            found = [(k, row) for k in range(len(self.objects)) if (row := self._shape(k)[1]) is not None]
+            self._rect_cache = (self._geometry, np.array([r for _, r in found], np.float64).reshape(-1, 17),
+                                frozenset(k for k, _ in found), np.array([k for k, _ in found], np.int64))
         return self._rect_cache[1], self._rect_cache[2], self._rect_cache[3]
 
     def _occluders(self, origins: np.ndarray, dirs: np.ndarray) -> Any:
@@ -734,8 +735,7 @@ class SGRelighter:
                 out[:, j] = self._lobe_rays(pos, nrm, pax[c - PEAK0], float(plam[c - PEAK0]), RAYS_PER_PEAK)
             elif c == REFLECTION:   # the reflection cone: rays uniform within it
                 m = RAYS_PER_CONE
-                g = (np.arange(m) + 0.5) / m
-                phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
+                g, phi = _fibonacci(m)
                 ca = 1 / np.sqrt(1 + tan[:, j] ** 2)
                 ct = np.clip(1 - g[None] * (1 - ca[:, None]), -1, 1)
                 st = np.sqrt(1 - ct * ct)
@@ -753,18 +753,17 @@ class SGRelighter:
         return out
 
     def _residual_ray_visibility(self, es: Any, eps: float, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
-        """``V_res`` by rays: 7 x RAYS_PER_CONE cosine-distributed rays over each point's
+        """``V_res`` by rays: RESIDUAL_RAYS cosine-distributed rays over each point's
         hemisphere (a Fibonacci pattern, turned per point), each weighted by the residual's
         radiance along it; the fraction of that light that escapes. The cones' partition is the
         voxel method's approximation; with rays the residual's visibility needs none."""
         from hostlink.relight.precompute import occluded
 
         n = len(pos)
-        m = 7 * RAYS_PER_CONE
-        g = (np.arange(m) + 0.5) / m
+        m = RESIDUAL_RAYS
+        g, phi = _fibonacci(m)
         ct = np.sqrt(1 - g)                       # cosine-weighted: pdf cos / pi
         st = np.sqrt(g)
-        phi = np.arange(m) * math.pi * (3 - math.sqrt(5))
         t1 = np.cross(nrm, np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
         t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
         t2 = np.cross(nrm, t1)

@@ -20,7 +20,6 @@ from numba import njit, prange
 __all__ = ["cone_frame", "interpolate", "rect_clear", "residual_visibility", "scatter_pixels", "shade_points", "trace_cones", "voxelize"]
 
 
-
 @njit(cache=True, fastmath=True, inline="always")
 def _dir_lookup3(tab: np.ndarray, x: float, y: float, z: float) -> tuple[float, float, float]:
     """Bilinear lookup of the three channels of a (6, N, N, 3) cube-map table at unit
@@ -131,31 +130,31 @@ def residual_visibility(cones: np.ndarray, vis: np.ndarray, tabW: np.ndarray, ou
 
 
 @njit(cache=True, fastmath=True, parallel=True)
-def rect_clear(pos: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray, rects: np.ndarray,
-               rect_obj: np.ndarray, owner: np.ndarray, g: np.ndarray, phi: np.ndarray,
-               out: np.ndarray) -> None:
+def rect_clear(pos: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray, side: np.ndarray, rects: np.ndarray,
+               rect_obj: np.ndarray, owner: np.ndarray, g: np.ndarray, cphi: np.ndarray, sphi: np.ndarray,
+               used: np.ndarray, out: np.ndarray) -> None:
     """Multiply ``out[i, k]`` by the fraction of cone ``k``'s rays from ``pos[i]`` (axis
     ``dirs[i, k]``, ``tan(half angle) = tan_half[i, k]``; the rays uniform over the cap: cosines
-    ``1 - g (1 - cos alpha)``, azimuths ``phi``) that meet none of the rectangles ``rects`` (Q, 17):
-    plane normal and offset (``n . x = c``), corner origin, two in-plane unit axes, extents
-    ``[a0, a1] x [b0, b1]`` along them. Rectangle ``q`` is no occluder for points on object
-    ``rect_obj[q]`` (``owner``); a cone wholly on the far side of a rectangle's plane is not tested."""
+    ``1 - g (1 - cos alpha)``, azimuths with cosines ``cphi`` and sines ``sphi``) that meet none of
+    the rectangles ``rects`` (Q, 17): plane normal and offset (``n . x = c``), corner origin, two
+    in-plane unit axes, extents ``[a0, a1] x [b0, b1]`` along them; ``side[i, q] = n . pos[i] -
+    c``. Rectangle ``q`` is no occluder for points on object ``rect_obj[q]`` (``owner``); a cone
+    wholly on the far side of every rectangle's plane, or not ``used``, is not tested."""
     m = g.shape[0]
     for i in prange(pos.shape[0]):
         px, py, pz = pos[i, 0], pos[i, 1], pos[i, 2]
         for k in range(dirs.shape[1]):
-            if out[i, k] <= 0.0:
+            if not used[i, k] or out[i, k] <= 0.0:
                 continue
             ax, ay, az = dirs[i, k, 0], dirs[i, k, 1], dirs[i, k, 2]
             ca = 1.0 / math.sqrt(1.0 + tan_half[i, k] * tan_half[i, k])
             sa = math.sqrt(max(1.0 - ca * ca, 0.0))
             near = False
             for q in range(rects.shape[0]):
-                if rect_obj[q] == owner[i]:
+                if rect_obj[q] == owner[i] or side[i, q] == 0.0:
                     continue
-                side = rects[q, 0] * px + rects[q, 1] * py + rects[q, 2] * pz - rects[q, 3]
-                toward = -(rects[q, 0] * ax + rects[q, 1] * ay + rects[q, 2] * az) * (1.0 if side > 0 else -1.0)
-                if side != 0.0 and toward > -sa:
+                toward = -(rects[q, 0] * ax + rects[q, 1] * ay + rects[q, 2] * az) * (1.0 if side[i, q] > 0 else -1.0)
+                if toward > -sa:
                     near = True
             if not near:
                 continue
@@ -164,10 +163,9 @@ def rect_clear(pos: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray, rects: n
             for r in range(m):
                 ct = 1.0 - g[r] * (1.0 - ca)
                 st = math.sqrt(max(1.0 - ct * ct, 0.0))
-                cp, sp = math.cos(phi[r]), math.sin(phi[r])
-                dx = ct * ax + st * (cp * tx + sp * bx)
-                dy = ct * ay + st * (cp * ty + sp * by)
-                dz = ct * az + st * (cp * tz + sp * bz)
+                dx = ct * ax + st * (cphi[r] * tx + sphi[r] * bx)
+                dy = ct * ay + st * (cphi[r] * ty + sphi[r] * by)
+                dz = ct * az + st * (cphi[r] * tz + sphi[r] * bz)
                 hit = False
                 for q in range(rects.shape[0]):
                     if rect_obj[q] == owner[i]:
@@ -175,7 +173,7 @@ def rect_clear(pos: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray, rects: n
                     dn = rects[q, 0] * dx + rects[q, 1] * dy + rects[q, 2] * dz
                     if dn == 0.0:
                         continue
-                    t = (rects[q, 3] - (rects[q, 0] * px + rects[q, 1] * py + rects[q, 2] * pz)) / dn
+                    t = -side[i, q] / dn
                     if t <= 0.0:
                         continue
                     hx = px + t * dx - rects[q, 4]
