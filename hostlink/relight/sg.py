@@ -258,6 +258,7 @@ class _Object:
     version: int = 0        # bumped whenever its vertices change (_place)
     # its plane (n, c) and rectangle row (rect_clear's 17 numbers), of ``version`` (_shape)
     shape_info: tuple[int, tuple[np.ndarray, float] | None, np.ndarray | None] | None = None
+    bound_info: tuple[int, np.ndarray, float] | None = None   # its bounding sphere, of ``version``
 
 
 class SGRelighter:
@@ -505,9 +506,11 @@ class SGRelighter:
             c = np.zeros((len(self.objects), 3))
             r = np.zeros(len(self.objects))
             for k, ob in enumerate(self.objects):
-                v = self.vertices[ob.base:ob.base + len(ob.rest)]
-                c[k] = (v.min(axis=0) + v.max(axis=0)) / 2
-                r[k] = float(np.linalg.norm(v - c[k], axis=1).max())
+                if ob.bound_info is None or ob.bound_info[0] != ob.version:   # only what changed
+                    v = self.vertices[ob.base:ob.base + len(ob.rest)]
+                    ck = (v.min(axis=0) + v.max(axis=0)) / 2
+                    ob.bound_info = (ob.version, ck, float(np.linalg.norm(v - ck, axis=1).max()))
+                c[k], r[k] = ob.bound_info[1], ob.bound_info[2]
             self._bound_cache = (self._geometry, c, r)
         return self._bound_cache[1], self._bound_cache[2]
 
