@@ -71,6 +71,12 @@ def _median_ms(fn: Any, n: int) -> tuple[float, float, list[float]]:
     return float(np.median(wall)), float(np.median(cpu)), wall
 
 
+def _timed(fn: Any) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
 def _errors(est: np.ndarray, x: np.ndarray, sel: np.ndarray) -> dict[str, float]:
     info = sum(np.where(x * t < 0.97, (t * FULL_WELL) ** 2 / (x * t * FULL_WELL + READ_NOISE**2), 0)
                for t in TIMES)
@@ -123,10 +129,20 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     stacks = run_stacks(shared)
     simulated = {f"{sc}/rgb8": asyncio.run(simulator_accuracy(sc, PixelFormat.RGB8, shared))
                  for sc in ("rooitou_park", "lebombo")}
+    from device.hdr.cli import fit_response
+
     for name, r in stacks.items():
-        summary[f"{name}_even_odd_dlog"] = r["lightprobe"]["even_odd_dlog"]
-        summary[f"{name}_opencv_debevec_even_odd_dlog"] = r["opencv_debevec"]["even_odd_dlog"]
-        summary[f"{name}_opencv_robertson_even_odd_dlog"] = r["opencv_robertson"]["even_odd_dlog"]
+        for tag, row in (("", r), ("registered_", r.get("registered"))):
+            if row is None:
+                continue
+            summary[f"{name}_{tag}even_odd_dlog"] = row["lightprobe"]["even_odd_dlog"]
+            summary[f"{name}_{tag}labels_even_odd_dlog"] = row["lightprobe_labels"]["even_odd_dlog"]
+            summary[f"{name}_{tag}opencv_debevec_even_odd_dlog"] = row["opencv_debevec"]["even_odd_dlog"]
+            summary[f"{name}_{tag}opencv_robertson_even_odd_dlog"] = row["opencv_robertson"]["even_odd_dlog"]
+            summary[f"{name}_{tag}correlation"] = row["lightprobe"]["log_correlation_vs_opencv_debevec"]
+        frames, times = load_stack(shared, name)
+        summary[f"{name}_response_fit_s"] = float(np.median(
+            [_timed(lambda f=frames, t=times: fit_response(f, t)) for _ in range(3)]))
     result = {"summary": summary, "accuracy": acc, "stacks": stacks, "simulator": simulated,
               "timings_ms": {"lightprobe": ours_ts, "opencv": cv_ts}}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -187,37 +203,44 @@ def _opencv(frames: list[np.ndarray], times: list[float], method: str) -> Any:
     return fused
 
 
-def _ours(frames: list[np.ndarray], times: list[float], deghost: bool) -> Any:
-    from device.hdr.cli import estimate_response, fusion_settings
+def _ours(frames: list[np.ndarray], times: list[float], deghost: bool, refine: bool = True) -> tuple[Any, list[float]]:
+    """Our merge function of index lists, with the stack's own response and effective exposures
+    (``lightprobe fuse``'s), and those exposures' corrections of the labels."""
+    from device.hdr.cli import fit_response, fusion_settings
     from device.hdr.fusion import fuse
 
-    response = estimate_response(frames, times)
+    fit = fit_response(frames, times, refine_exposures=refine)
+    response, exposures = fit.response, list(fit.exposures_s)
     settings = fusion_settings(response, deghost=deghost)
 
     def fused(idx: list[int]) -> Any:
-        return fuse([frames[i] for i in idx], [times[i] for i in idx], response, settings=settings)
+        return fuse([frames[i] for i in idx], [exposures[i] for i in idx], response, settings=settings)
 
-    return fused
+    return fused, [float(c) for c in fit.corrections]
 
 
-def score_stack(frames: list[np.ndarray], times: list[float]) -> dict[str, dict[str, float]]:
+def score_stack(frames: list[np.ndarray], times: list[float]) -> dict[str, dict[str, Any]]:
     """Per method: even-vs-odd consistency, dynamic range, correlation with OpenCV Debevec's
-    merge of the whole stack, seconds; ours also the deghosting's rejected share and its
-    agreement with ``--no-deghost``."""
+    merge of the whole stack, seconds; ours also the deghosting's rejected share, its agreement
+    with ``--no-deghost`` and the exposure corrections of the labels (``lightprobe_labels``:
+    ours with the labels taken as exact)."""
     from device.hdr.quality import dynamic_range, log_correlation, subset_consistency
 
     n = len(frames)
     even, odd, whole = list(range(0, n, 2)), list(range(1, n, 2)), list(range(n))
-    out: dict[str, dict[str, float]] = {}
+    out: dict[str, dict[str, Any]] = {}
     full: dict[str, np.ndarray] = {}
     for name, make in (("opencv_debevec", lambda: _opencv(frames, times, "debevec")),
                        ("opencv_robertson", lambda: _opencv(frames, times, "robertson")),
                        ("lightprobe", lambda: _ours(frames, times, True)),
-                       ("lightprobe_no_deghost", lambda: _ours(frames, times, False))):
+                       ("lightprobe_no_deghost", lambda: _ours(frames, times, False)),
+                       ("lightprobe_labels", lambda: _ours(frames, times, True, refine=False))):
         t0 = time.perf_counter()
         fused = make()
+        row: dict[str, Any] = {}
+        if isinstance(fused, tuple):  # ours: (merge, exposure corrections)
+            fused, row["exposure_corrections"] = fused
         a, e, o = fused(whole), fused(even), fused(odd)
-        row: dict[str, float] = {}
         if not isinstance(a, np.ndarray):  # a FusionResult
             row["deghost_rejected_fraction"] = a.rejected_fraction
             a, e, o = a.radiance, e.radiance, o.radiance

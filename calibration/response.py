@@ -1,9 +1,14 @@
 """Camera response: the project's one Debevec-Malik solver, Robertson's estimate, raw linearity.
 
 Processed (RGB8) output: the inverse response ``exp(g(z))`` is solved from an exposure bracket
-with Debevec & Malik's least squares [1, eq. 3] (:func:`solve_debevec`: samples from smooth
-regions, robustly reweighted; it also works on the tiny stacks where OpenCV's
-``CalibrateDebevec`` asserts) or Robertson's ML estimate [2] (``cv2.createCalibrateRobertson``).
+with Debevec & Malik's least squares [1, eq. 3] (:func:`gsolve`, all channels in one system;
+:func:`fit_stack` / :func:`solve_debevec`: samples from smooth regions, robustly reweighted; it
+also works on the tiny stacks where OpenCV's ``CalibrateDebevec`` asserts) or Robertson's ML
+estimate [2] (``cv2.createCalibrateRobertson``). A stack fused with its own response
+(``lightprobe fuse``) also has its frames' effective exposures solved for (:func:`fit_stack`,
+as Mitsunaga & Nayar [4] do for unknown exposure ratios): shutter labels are nominal and a
+phone changes its gain unlabelled. A calibration (:func:`solve_debevec`) keeps the labels: its
+response is used later with the exposures the driver reports.
 Either way the bracket also gives ``log_sigma``, the scatter of one sample per code, measured on
 every pixel through the joint histograms of consecutive exposures [3] (:func:`code_scatter`),
 which the HDR merge uses as its noise model.
@@ -32,6 +37,8 @@ References
 .. [3] S. Mann, R. Picard, "On being 'undigital' with digital cameras", IS&T 1995, and
    M. Grossberg, S. Nayar, "Determining the camera response from images: what is knowable?",
    PAMI 2003: the response from joint histograms of exposure pairs (comparametric equations).
+.. [4] T. Mitsunaga, S. K. Nayar, "Radiometric self calibration", CVPR 1999: the response and the
+   exposure ratios estimated together, from the labels as a start.
 """
 
 from __future__ import annotations
@@ -46,15 +53,18 @@ from device.core.calibration import Response, repair_inverse
 from device.core.errors import InputError
 from drivers.base import Camera, Controls, Frame
 
-__all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "capture_bracket", "code_scatter",
-           "compare_inverse", "gsolve", "linearity_check", "pair_bins", "response_from_stack", "sample_pixels",
-           "solve_debevec"]
+__all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "StackFit", "capture_bracket", "code_scatter",
+           "compare_inverse", "fit_stack", "gsolve", "linearity_check", "pair_bins", "response_from_stack",
+           "sample_pixels", "solve_debevec"]
 
 LEVELS = 256
 SMOOTHNESS = 40.0  # lambda of eq. 3 per data row (gsolve)
 SAMPLES = 3000  # sampled pixels per channel
 CENSOR = 3  # codes within this many of 0 or 255 are clipped: censored data, not values
 IRLS_ROUNDS = 3
+EXPOSURE_RIDGE = 0.01  # gsolve: the exposure corrections' ridge, in units of a frame's data weight
+REFINE_MIN_SHARE = 0.02  # fit_stack: a frame's exposure is refined when this share of its samples is well exposed
+MAX_EXPOSURE_CORRECTION = float(np.log(2.0))  # fit_stack: beyond a factor 2 the labels are kept
 
 
 def _hat(z: np.ndarray) -> np.ndarray:
@@ -134,63 +144,108 @@ def sample_pixels(stack: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
     return np.unique(out.astype(np.int64))
 
 
-def gsolve(z: np.ndarray, log_t: np.ndarray, smoothness: float,
-           weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """gsolve.m [1]: samples ``z`` (N, P) ints, ``log_t`` (P,) -> (g (256,), ln X (N,)), g(128) = 0.
+def gsolve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float,
+           weights: Sequence[np.ndarray] | None = None, refine: np.ndarray | None = None
+           ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """gsolve.m [1] for every channel at once: samples ``z[c]`` (N_c, P) ints of channel ``c``,
+    ``log_t`` (P,) -> (g (256, C), ln X per channel (N_c,), d (P,)), g_c(128) = 0.
 
-    Minimises ``sum_ij [w(Z_ij) (g(Z_ij) - ln X_i - ln t_j)]^2 + lambda sum_z [w(z) g''(z)]^2``
-    (eq. 3) through its sparse normal equations (SuperLU, float64: no multi-threaded dense LAPACK,
-    which crawls on a busy 2-core board). ``lambda`` is per data row: the smoothness term is
-    scaled by ``N P / 256`` so that the balance does not change with the number of samples.
-    ``weights`` (N, P) multiply the hat (robust reweighting).
+    Minimises ``sum_cij [w(Z_cij) (g_c(Z_cij) - ln X_ci - ln t_j - d_j)]^2 + lambda sum_cz
+    [w(z) g_c''(z)]^2`` (eq. 3). ``lambda`` is per data row: each channel's smoothness term is
+    scaled by ``N_c P / 256`` so that the balance does not change with the number of samples.
+    ``weights[c]`` (N_c, P) multiply the hat (robust reweighting). Each ``ln X_i`` is the
+    weighted mean of its own sample's terms, so it is eliminated in closed form and the normal
+    equations shrink to the curves and the corrections (256 C + P unknowns, solved densely:
+    ~0.1 s where the sparse system of every pixel took seconds).
+
+    ``d`` corrects the labelled log exposure of the frames marked in ``refine`` (the others keep
+    ``d = 0``), shared by the channels: a camera's shutter labels are nominal (1/15 s for
+    2^-4 s, 1/125 for 2^-7), and a label off by 4% bends the curve where that pair of frames
+    dominates. Data fix the corrections only up to the eq.-3 ambiguity ``(g, ln X, ln t) ->
+    k (g, ln X, ln t) + const``, so they are held to the labels on average, in level and in span
+    (``sum d = 0``, ``sum d (ln t - mean) = 0`` over the refined frames, exactly, by solving in
+    the complement of those two directions), with a weak ridge (:data:`EXPOSURE_RIDGE` of an
+    average frame's data weight) for frames the data barely reach. Fewer than 3 refined
+    frames leave nothing to refine.
     """
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
+    import scipy.linalg as sla
 
-    n, p = z.shape
-    w = _hat(z).ravel() if weights is None else _hat(z).ravel() * weights.ravel()
-    k = np.arange(n * p)
-    ii = np.repeat(np.arange(n), p)
-    # Data term w (g(Z_ij) - ln X_i) = w ln t_j                                            (eq. 3)
-    rows, cols, vals = [k, k], [z.ravel(), LEVELS + ii], [w, -w]
-    b = [w * np.tile(log_t, n)]
-    r0 = n * p
-    # Fix the curve: g(128) = 0
-    rows.append(np.array([r0]))
-    cols.append(np.array([LEVELS // 2]))
-    vals.append(np.array([1.0]))
-    b.append(np.zeros(1))
-    # Smoothness sqrt(lambda) w(z) g''(z) = 0 for z = 1..254                                (eq. 3)
+    lt = np.asarray(log_t, np.float64)
+    p = lt.size
+    nch = len(z)
+    free = np.zeros(p, bool) if refine is None else np.asarray(refine, bool)
+    basis = np.zeros((p, 0))
+    if free.sum() >= 3:  # directions of d that keep the level and the span of the labels
+        cons = np.stack([np.ones(int(free.sum())), lt[free] - lt[free].mean()], axis=1)
+        _, _, vt = np.linalg.svd(cons.T)
+        basis = np.zeros((p, int(free.sum()) - 2))
+        basis[free] = vt[2:].T
+    nb = basis.shape[1]
+    size = LEVELS * nch + nb
+    nrm = np.zeros((size, size))
+    rhs = np.zeros(size)
     zz = np.arange(1, LEVELS - 1)
-    wz = np.sqrt(smoothness * n * p / LEVELS) * _hat(zz)
-    rr = r0 + 1 + np.arange(zz.size)
-    for off, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):
-        rows.append(rr)
-        cols.append(zz + off)
-        vals.append(coef * wz)
-    b.append(np.zeros(zz.size))
-    a = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(r0 + 1 + zz.size, LEVELS + n))
-    rhs = np.concatenate(b)
-    # Unsampled levels and pixels would make the normal matrix singular: a tiny ridge
-    m = (a.T @ a + 1e-9 * sp.identity(LEVELS + n)).tocsc()
-    sol = spla.spsolve(m, a.T @ rhs)
-    return np.asarray(sol[:LEVELS], np.float64), np.asarray(sol[LEVELS:], np.float64)
+    second = np.zeros((zz.size, LEVELS))
+    second[np.arange(zz.size), zz - 1], second[np.arange(zz.size), zz], second[np.arange(zz.size), zz + 1] = 1, -2, 1
+    data_w2 = np.zeros(p)
+    for c, zc in enumerate(z):
+        n = zc.shape[0]
+        w = _hat(zc) if weights is None else _hat(zc) * weights[c]
+        a = w * w
+        data_w2 += a.sum(axis=0)
+        # Eliminating ln X_i leaves each sample's terms weighted by M_i = diag(a_i) - a_i a_i^T / s_i
+        m = a[:, :, None] * np.eye(p)[None] - a[:, :, None] * a[:, None, :] / a.sum(axis=1)[:, None, None]
+        o = LEVELS * c
+        pairs = (zc[:, :, None] * LEVELS + zc[:, None, :]).ravel()
+        nrm[o:o + LEVELS, o:o + LEVELS] += np.bincount(pairs, m.ravel(), LEVELS * LEVELS).reshape(LEVELS, LEVELS)
+        rhs[o:o + LEVELS] += np.bincount(zc.ravel(), (m @ lt).ravel(), LEVELS)
+        if nb:
+            mb = m @ basis  # (N, P, nb)
+            cross = np.stack([np.bincount(zc.ravel(), mb[..., q].ravel(), LEVELS) for q in range(nb)], axis=1)
+            nrm[o:o + LEVELS, LEVELS * nch:] -= cross
+            nrm[LEVELS * nch:, o:o + LEVELS] -= cross.T
+            msum = m.sum(axis=0)
+            nrm[LEVELS * nch:, LEVELS * nch:] += basis.T @ msum @ basis
+            rhs[LEVELS * nch:] -= basis.T @ (msum @ lt)
+        # Smoothness sqrt(lambda) w(z) g''(z) = 0 for z = 1..254, and g(128) = 0             (eq. 3)
+        sm = np.sqrt(smoothness * n * p / LEVELS) * _hat(zz)[:, None] * second
+        nrm[o:o + LEVELS, o:o + LEVELS] += sm.T @ sm
+        nrm[o + LEVELS // 2, o + LEVELS // 2] += 1.0
+    if nb:  # the ridge: orthonormal basis, so |theta| = |d|
+        nrm[LEVELS * nch:, LEVELS * nch:] += EXPOSURE_RIDGE * float(np.mean(data_w2[free])) * np.eye(nb)
+    # Unsampled levels would make the normal matrix singular: a tiny ridge
+    nrm[np.diag_indices(size)] += 1e-9
+    try:
+        sol = sla.solve(nrm, rhs, assume_a="pos", check_finite=False)
+    except np.linalg.LinAlgError:  # rounding made it indefinite (codes no sample shows): least squares
+        sol = np.linalg.lstsq(nrm, rhs, rcond=None)[0]
+    g = sol[:LEVELS * nch].reshape(nch, LEVELS).T
+    d = basis @ sol[LEVELS * nch:] if nb else np.zeros(p)
+    lx = []
+    for c, zc in enumerate(z):
+        w = _hat(zc) if weights is None else _hat(zc) * weights[c]
+        a = w * w
+        lx.append(np.sum(a * (g[zc, c] - lt - d), axis=1) / a.sum(axis=1))
+    return np.ascontiguousarray(g), lx, d
 
 
-def _solve_channel(z: np.ndarray, log_t: np.ndarray, smoothness: float, rounds: int) -> np.ndarray:
-    """g of one channel: :func:`gsolve`, then ``rounds`` of iteratively reweighted least squares
-    (Cauchy weights on the residuals ``g(Z_ij) - ln X_i - ln t_j``, scale from their median over
-    well-exposed samples), so the samples a moving object or a misregistration put off the curve
-    stop bending it."""
-    g, lx = gsolve(z, log_t, smoothness)
-    mid = (z > 10) & (z < LEVELS - 11)
+def _solve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float, rounds: int,
+           refine: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(g (256, C), d (P,)): :func:`gsolve`, then ``rounds`` of iteratively reweighted least
+    squares (Cauchy weights on the residuals ``g(Z_ij) - ln X_i - ln t_j - d_j``, scale from
+    their median over well-exposed samples, per channel), so the samples a moving object or a
+    misregistration put off the curve stop bending it."""
+    g, lx, d = gsolve(z, log_t, smoothness, refine=refine)
     for _ in range(rounds):
-        r = g[z] - lx[:, None] - log_t[None, :]
-        s = 1.4826 * float(np.median(np.abs(r[mid]))) if mid.any() else 1.0
-        u = r / (3.0 * max(s, 1e-4))
-        g, lx = gsolve(z, log_t, smoothness, 1.0 / np.sqrt(1.0 + u * u))
-    return g
+        wts = []
+        for c, zc in enumerate(z):
+            r = g[zc, c] - lx[c][:, None] - (log_t + d)[None, :]
+            mid = (zc > 10) & (zc < LEVELS - 11)
+            s = 1.4826 * float(np.median(np.abs(r[mid]))) if mid.any() else 1.0
+            u = r / (3.0 * max(s, 1e-4))
+            wts.append(1.0 / np.sqrt(1.0 + u * u))
+        g, lx, d = gsolve(z, log_t, smoothness, wts, refine=refine)
+    return g, d
 
 
 def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarray, inverse: np.ndarray) -> np.ndarray:
@@ -222,16 +277,27 @@ def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarr
     return out
 
 
-def solve_debevec(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothness: float = SMOOTHNESS,
-                  samples: int = SAMPLES, rounds: int = IRLS_ROUNDS) -> Response:
-    """Inverse response (256, 3) of 8-bit RGB frames of one static scene at ``times`` [1], with
-    the per-code scatter of the bracket (:func:`code_scatter`) as ``log_sigma``.
+@dataclass(frozen=True)
+class StackFit:
+    """A stack's own response and the exposures it was fitted with: ``exposures_s`` are the
+    labels ``labels_s`` times the corrections the data asked for (:func:`gsolve`; 1 where
+    ``refined`` is False). Fuse the stack with ``exposures_s``: the response is consistent with
+    those, not with the labels. ``rejected_correction``: the largest correction (factor) the
+    data asked for when it was beyond belief and the labels were kept instead (else 1)."""
 
-    Real photographs break the textbook solve on randomly sampled pixels: samples on edges see
-    JPEG ringing, demosaicing and sub-pixel misregistration, and a handful of them bend the curve
-    (2.5x OpenCV's subset disagreement on a real stack). Samples come from smooth regions
-    (:func:`sample_pixels`) and outliers are reweighted away (:func:`_solve_channel`).
-    """
+    response: Response
+    exposures_s: np.ndarray
+    labels_s: np.ndarray
+    refined: np.ndarray
+    rejected_correction: float = 1.0
+
+    @property
+    def corrections(self) -> np.ndarray:
+        """Effective over labelled exposure, per frame."""
+        return self.exposures_s / self.labels_s
+
+
+def _check_bracket(frames: Sequence[np.ndarray], times: Sequence[float], smoothness: float) -> np.ndarray:
     if len(frames) < 2:
         raise InputError("estimating a response needs at least 2 exposures (or give --response)",
                          param="--response")
@@ -242,15 +308,56 @@ def solve_debevec(frames: Sequence[np.ndarray], times: Sequence[float], *, smoot
         raise InputError("the exposure times of a bracket must differ", param="times")
     if not np.isfinite(smoothness) or smoothness <= 0:
         raise InputError(f"smoothness {smoothness!r} must be positive", param="--smoothness")
-    g = np.empty((LEVELS, 3))
+    return t
+
+
+def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothness: float = SMOOTHNESS,
+              samples: int = SAMPLES, rounds: int = IRLS_ROUNDS, refine_exposures: bool = True) -> StackFit:
+    """Inverse response (256, 3) of 8-bit RGB frames of one static scene labelled ``times`` [1],
+    with the per-code scatter of the bracket (:func:`code_scatter`) as ``log_sigma``, and, with
+    ``refine_exposures``, the frames' effective exposures (:func:`gsolve`'s corrections).
+
+    Real photographs break the textbook solve on randomly sampled pixels: samples on edges see
+    JPEG ringing, demosaicing and sub-pixel misregistration, and a handful of them bend the curve
+    (2.5x OpenCV's subset disagreement on a real stack). Samples come from smooth regions
+    (:func:`sample_pixels`) and outliers are reweighted away (:func:`_solve`).
+
+    Exposures are refined for frames with at least :data:`REFINE_MIN_SHARE` of their samples
+    well exposed (a white or black frame has nothing to say); a correction beyond
+    :data:`MAX_EXPOSURE_CORRECTION` means the labels and the pictures do not belong together,
+    or the scene changed: then every label is kept and the response solved with them.
+    """
+    t = _check_bracket(frames, times, smoothness)
+    zs = []
     for c in range(3):
         stack = np.stack([np.asarray(f)[..., c] for f in frames])
         idx = sample_pixels(stack, samples)
-        z = stack.reshape(len(frames), -1)[:, idx].T.astype(np.int64)
-        g[:, c] = _solve_channel(z, np.log(t), smoothness, rounds)
+        zs.append(stack.reshape(len(frames), -1)[:, idx].T.astype(np.int64))
+    refine = None
+    if refine_exposures:
+        good = sum(((zc > 10) & (zc < LEVELS - 11)).sum(axis=0) for zc in zs)
+        refine = good >= REFINE_MIN_SHARE * sum(zc.shape[0] for zc in zs)
+        if refine.sum() < 3:  # the level and the span take two: nothing left to refine
+            refine = None
+    g, d = _solve(zs, np.log(t), smoothness, rounds, refine)
+    rejected = 1.0
+    if np.max(np.abs(d)) > MAX_EXPOSURE_CORRECTION:
+        rejected = float(np.exp(np.max(np.abs(d))))
+        refine = None
+        g, d = _solve(zs, np.log(t), smoothness, rounds, None)
+    exposures = t * np.exp(d)
     inv = repair_inverse(np.exp(np.clip(g, -700, 700)))
     resp = Response("table", 8, inv, "debevec").normalised()
-    return Response(resp.model, resp.bits, resp.inverse, resp.method, code_scatter(frames, t, resp.inverse))
+    resp = Response(resp.model, resp.bits, resp.inverse, resp.method, code_scatter(frames, exposures, resp.inverse))
+    return StackFit(resp, exposures, t, np.zeros(t.size, bool) if refine is None else refine, rejected)
+
+
+def solve_debevec(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothness: float = SMOOTHNESS,
+                  samples: int = SAMPLES, rounds: int = IRLS_ROUNDS) -> Response:
+    """:func:`fit_stack` with the labelled exposures taken as exact: the response a camera's
+    calibration stores, to be used later with the exposures its driver reports."""
+    return fit_stack(frames, times, smoothness=smoothness, samples=samples, rounds=rounds,
+                     refine_exposures=False).response
 
 
 def response_from_stack(images: Sequence[np.ndarray], exposures_s: Sequence[float], *,

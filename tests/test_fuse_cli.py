@@ -15,7 +15,7 @@ import pytest
 from device.cli import main
 from device.core.calibration import Calibration, Response
 from device.hdr import FusionSettings
-from device.hdr.cli import estimate_response
+from device.hdr.cli import fit_response
 
 STACK = "exposure_stacks/piccante_room_lamp"
 
@@ -54,7 +54,11 @@ def test_real_stack_reads_back_with_metadata(fused_room: tuple) -> None:
     assert np.isfinite(img).all()
     assert (img >= 0).all()
     assert header["unit"] == "relative"
-    assert [float(t) for t in str(header["exposures"]).split(",")] == pytest.approx(times)
+    assert [float(t) for t in str(header["exposure_labels"]).split(",")] == pytest.approx(times)
+    # fused with the exposures the pictures show: the stack's own fit's, near the labels
+    used = [float(t) for t in str(header["exposures"]).split(",")]
+    assert used == pytest.approx(list(fit_response(frames, times).exposures_s), rel=1e-6)
+    assert np.allclose(used, times, rtol=0.15)
 
 
 def test_real_stack_dynamic_range_and_lamp_not_clipped(fused_room: tuple) -> None:
@@ -72,10 +76,11 @@ def test_real_stack_dynamic_range_and_lamp_not_clipped(fused_room: tuple) -> Non
     assert n_sat <= core.sum() < 0.1 * lamp.sum()
     # Unclipped: nearly all the lamp is resolved, and it is brighter than anything the stack
     # without its shortest exposure could represent (E(z_sat) / t of the second-shortest frame)
-    resp = estimate_response(frames, times)
+    fit = fit_response(frames, times)
+    resp, used = fit.response, fit.exposures_s
     z_sat = int(np.ceil(FusionSettings().sat_frac * 255))
-    bound2 = resp.inverse[z_sat] / times[order[1]]
-    bound1 = resp.inverse[z_sat] / times[order[0]]
+    bound2 = resp.inverse[z_sat] / used[order[1]]
+    bound1 = resp.inverse[z_sat] / used[order[0]]
     # Pixels at the documented lower bound (flagged ones, and any at the same clip value)
     sat_mask = (img >= bound1 * (1 - 1e-4)).any(axis=-1)
     assert sat_mask.sum() >= n_sat
@@ -244,7 +249,8 @@ def test_deghosting_with_a_measured_response_drops_a_moving_lamp_only(
 
     images, times, _ = stack
     frames = read_stack(images)
-    response = estimate_response(frames, times)
+    fit = fit_response(frames, times)
+    response, times = fit.response, list(fit.exposures_s)
     assert response.log_sigma is not None
     settings = FusionSettings(deghost=True, ghost_rel_tol=0.05)
     clean = fuse(frames, times, response, settings=settings).radiance

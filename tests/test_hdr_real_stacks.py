@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from bench.hdr import run_stacks
@@ -41,8 +42,22 @@ def test_subset_consistency_beats_opencv(scores: dict[str, Any]) -> None:
         assert ours <= rob, name
         assert ours <= deb, name
         # 0.8 x OpenCV Debevec's where OpenCV is far from the noise floor; on the 1-stop Fuji
-        # stack OpenCV already sits at it (its subsets disagree by 1.1%) and we reach 0.92 x
-        assert ours <= (0.95 if name == "makehdr_room_window" else 0.8) * deb, name
+        # stack OpenCV already sits at it (its subsets disagree by 1.1%) and we reach 0.83 x
+        assert ours <= (0.85 if name == "makehdr_room_window" else 0.8) * deb, name
+
+
+def test_effective_exposures_make_the_subsets_agree(scores: dict[str, Any]) -> None:
+    """Fused with the exposures the pictures show (``calibration.response.fit_stack``) rather than
+    the nominal labels, the tripod stacks' subsets agree better (makehdr 0.0102 -> 0.0094,
+    piccante 0.027 -> 0.022 when this was written), with corrections of a few percent."""
+    for name in TRIPOD:
+        ours, labels = scores[name]["lightprobe"], scores[name]["lightprobe_labels"]
+        corr = np.asarray(ours["exposure_corrections"])
+        print(f"{name}: even/odd {ours['even_odd_dlog']:.4f} (labels {labels['even_odd_dlog']:.4f}), "
+              f"corrections {np.round(corr, 3).tolist()}")
+        assert ours["even_odd_dlog"] <= 0.95 * labels["even_odd_dlog"], name
+        assert np.all(np.abs(np.log(corr)) < np.log(1.15)), name
+        assert np.any(corr != 1.0), name
 
 
 def test_agrees_with_opencv_and_keeps_the_dynamic_range(scores: dict[str, Any]) -> None:

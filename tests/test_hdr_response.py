@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.response import pair_bins, solve_debevec
+from calibration.response import fit_stack, pair_bins, solve_debevec
 from device.core.errors import InputError
 
 
@@ -51,3 +51,61 @@ def test_needs_two_exposures_and_positive_times() -> None:
         solve_debevec(frames[:1], times[:1])
     with pytest.raises(InputError, match="positive"):
         solve_debevec(frames[:2], [0.1, -1.0])
+
+
+def test_nominal_exposure_labels_are_corrected_from_the_pictures() -> None:
+    """Two middle labels off as a camera's are (1/15 s for 2^-4 s: 6.7%): the fit finds the
+    effective exposures (up to the level and span it holds to the labels) and the response
+    comes out as exact as with true labels; ``solve_debevec`` (a calibration's response, used
+    later with the driver's exposures) keeps the labels."""
+    gamma = (2.0, 2.2, 2.6)
+    frames, true = _stack(gamma, seed=3)
+    labels = list(true)
+    labels[2], labels[3] = true[2] / 1.067, true[3] * 1.055
+    fit = fit_stack(frames, labels)
+    assert fit.refined.all()
+    assert fit.rejected_correction == 1.0
+    np.testing.assert_allclose(fit.labels_s, labels)
+    lt = np.log(true)
+    basis = np.stack([np.ones_like(lt), lt], axis=1)
+
+    def off(exposures: np.ndarray) -> float:  # log error after the best level and span
+        r = np.log(exposures) - lt
+        return float(np.max(np.abs(r - basis @ np.linalg.lstsq(basis, r, rcond=None)[0])))
+
+    assert off(np.asarray(labels)) > 0.03
+    assert off(fit.exposures_s) < 0.004, np.log(fit.corrections)
+    z = np.arange(256) / 255.0
+    sel = slice(20, 250)
+    flat = [float(np.std(np.log(fit.response.inverse[sel, c] / z[sel] ** gc))) for c, gc in enumerate(gamma)]
+    held = solve_debevec(frames, labels)
+    flat_held = [float(np.std(np.log(held.inverse[sel, c] / z[sel] ** gc))) for c, gc in enumerate(gamma)]
+    assert max(flat) < 0.02, flat
+    assert max(flat) < 0.5 * max(flat_held), (flat, flat_held)
+
+
+def test_labels_that_do_not_belong_to_the_pictures_are_kept_and_flagged() -> None:
+    """Times given in the wrong order ask for corrections beyond a factor 2: the fit keeps every
+    label (and says how far off the pictures put them) rather than invent exposures."""
+    frames, true = _stack((2.2, 2.2, 2.2), seed=5)
+    labels = [true[1], true[0], true[3], true[2], true[4]]
+    fit = fit_stack(frames, labels)
+    assert fit.rejected_correction > 2.0
+    assert not fit.refined.any()
+    np.testing.assert_array_equal(fit.exposures_s, labels)
+
+
+def test_white_and_black_frames_keep_their_labels() -> None:
+    """A frame with next to nothing well exposed (white or black) has nothing to say about its
+    exposure: its label stands, and a stack of fewer than three informative frames is not refined."""
+    frames, true = _stack((2.2, 2.2, 2.2), seed=7)
+    frames = [np.full_like(frames[0], 255), *frames, np.zeros_like(frames[0])]
+    times = [true[-1] * 64, *true, true[0] / 64]
+    fit = fit_stack(frames, times)
+    assert not fit.refined[0]
+    assert not fit.refined[-1]
+    assert fit.refined[1:-1].all()
+    assert fit.corrections[0] == 1.0
+    assert fit.corrections[-1] == 1.0
+    two = fit_stack(frames[:3], times[:3])
+    assert not two.refined.any()

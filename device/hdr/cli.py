@@ -1,12 +1,15 @@
 """``lightprobe fuse IMG... --times T... [--response FILE] [--align] --out OUT.exr``
 
 Fuses an exposure stack of 8-bit images into a linear HDR image (OpenEXR, float32, metadata
-``unit=relative``, ``exposures``, ``response``, ``saturated_pixels``). Without ``--response`` the
-camera response is estimated from the stack itself (Debevec & Malik 1997,
-:func:`calibration.response.solve_debevec`, with the scatter per code the merge weights by). It
-reports what it did: the response's source, the frames' misregistration (``--align`` registers
-a hand-held stack first, :mod:`device.hdr.align`), the share of samples the deghosting rejected,
-the saturated and too-dark fractions, the dynamic range, and warnings for a bad stack. Bad input
+``unit=relative``, ``exposures``, ``exposure_labels``, ``response``, ``saturated_pixels``).
+Without ``--response`` the camera response is estimated from the stack itself (Debevec & Malik
+1997, :func:`calibration.response.fit_stack`, with the scatter per code the merge weights by),
+and so is each frame's effective exposure: shutter labels are nominal (1/15 s for 2^-4 s) and a
+phone changes its gain unlabelled, so the frames are fused with the exposures the pictures show
+(``exposures``; the given ones are ``exposure_labels``). It reports what it did: the response's
+source, the exposure corrections, the frames' misregistration (``--align`` registers a hand-held
+stack first, :mod:`device.hdr.align`), the share of samples the deghosting rejected, the
+saturated and too-dark fractions, the dynamic range, and warnings for a bad stack. Bad input
 (unreadable image, mismatched sizes, missing or non-positive times, count mismatch) exits 2 with a
 one-line message naming the file or value (CONVENTIONS.md).
 """
@@ -24,9 +27,12 @@ from device.core.calibration import Calibration, Response
 from device.core.errors import InputError
 
 if TYPE_CHECKING:
+    from calibration.response import StackFit
     from device.hdr.fusion import FusionSettings
 
-__all__ = ["estimate_response", "fuse_report", "fusion_settings", "main", "read_stack", "read_times_file"]
+__all__ = ["fit_response", "fuse_report", "fusion_settings", "main", "read_stack", "read_times_file"]
+
+EXPOSURE_WARN = 0.15  # an exposure that the pictures put this far from its label is reported
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -111,11 +117,14 @@ def read_stack(images: list[Path]) -> list[np.ndarray]:
     return out
 
 
-def estimate_response(frames: list[np.ndarray], times: list[float], smoothness: float | None = None) -> Response:
-    """Debevec-Malik response of the stack itself (:func:`calibration.response.solve_debevec`)."""
-    from calibration.response import SMOOTHNESS, solve_debevec
+def fit_response(frames: list[np.ndarray], times: list[float], smoothness: float | None = None, *,
+                 refine_exposures: bool = True) -> StackFit:
+    """Debevec-Malik response of the stack itself and the effective exposures it was solved with
+    (:func:`calibration.response.fit_stack`): fuse the stack with ``fit.exposures_s``."""
+    from calibration.response import SMOOTHNESS, fit_stack
 
-    return solve_debevec(frames, times, smoothness=SMOOTHNESS if smoothness is None else smoothness)
+    return fit_stack(frames, times, smoothness=SMOOTHNESS if smoothness is None else smoothness,
+                     refine_exposures=refine_exposures)
 
 
 def _load_response(path: Path) -> Response:
@@ -165,14 +174,18 @@ def _run(ns: argparse.Namespace) -> int:
     if ns.align:
         frames = apply_shifts(frames, shifts)
     source = f"{ns.response}" if response is not None else "estimated from the stack"
+    fit = None
     if response is None:
-        response = estimate_response(frames, times, ns.smoothness)
+        fit = fit_response(frames, times, ns.smoothness)
+        response = fit.response
+    exposures = list(fit.exposures_s) if fit is not None else times
     settings = fusion_settings(response, deghost=not ns.no_deghost)
-    res = fuse(frames, times, response, settings=settings)
-    report = fuse_report(res, response, source, shifts=shifts, aligned=ns.align)
+    res = fuse(frames, exposures, response, settings=settings)
+    report = fuse_report(res, response, source, shifts=shifts, aligned=ns.align, fit=fit)
     meta = {
         "unit": "relative",
-        "exposures": ",".join(f"{t:.9g}" for t in times),
+        "exposures": ",".join(f"{t:.9g}" for t in exposures),
+        "exposure_labels": ",".join(f"{t:.9g}" for t in times),
         "response": response.method or response.model,
         "saturated_pixels": str(int(res.saturated.sum())),
         "invalid_pixels": str(int(res.invalid.sum())),
@@ -183,6 +196,9 @@ def _run(ns: argparse.Namespace) -> int:
     write_exr(ns.out, res.radiance, meta)
     print(f"{ns.out}: {res.radiance.shape[1]}x{res.radiance.shape[0]}, {len(images)} exposures")
     print(f"  response: {report['response']} ({source}); noise model: {report['noise_model']}")
+    if fit is not None:
+        print(f"  exposures: {report['exposures_refined']} of {len(times)} refined from the pictures, "
+              f"largest correction x{report['max_exposure_correction']:.3f} of the label")
     print(f"  registration: {'applied' if ns.align else 'not applied'}, frames off by up to "
           f"{report['max_shift_px']} px")
     print(f"  deghosting: {'off' if ns.no_deghost else 'on'}, {100 * report['deghost_rejected_fraction']:.2f}% "
@@ -206,9 +222,11 @@ def fusion_settings(response: Response, *, deghost: bool = True) -> FusionSettin
 
 
 def fuse_report(res: Any, response: Response, source: str, shifts: list[tuple[int, int]] | None = None,
-                aligned: bool = False) -> dict[str, Any]:
+                aligned: bool = False, fit: StackFit | None = None) -> dict[str, Any]:
     """What a fusion did, so a user sees a bad stack for what it is. ``shifts``: each frame's
-    registration (:func:`device.hdr.align.stack_shifts`), applied if ``aligned``."""
+    registration (:func:`device.hdr.align.stack_shifts`), applied if ``aligned``; ``fit``: the
+    stack's own response fit, whose exposure corrections are reported (each frame's effective
+    exposure over its label) and warned about beyond :data:`EXPOSURE_WARN`."""
     lum = res.radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     good = lum[np.isfinite(lum) & (lum > 0) & ~res.saturated & ~res.invalid]
     dr = float(np.percentile(good, 99.9) / np.percentile(good, 0.1)) if good.size > 10 else 0.0
@@ -222,6 +240,19 @@ def fuse_report(res: Any, response: Response, source: str, shifts: list[tuple[in
         "shifts": [list(s) for s in shifts or []], "aligned": aligned,
         "max_shift_px": max((max(abs(dx), abs(dy)) for dx, dy in shifts or []), default=0),
     }
+    if fit is not None:
+        corr = np.asarray(fit.corrections, np.float64)
+        out["exposure_corrections"] = [round(float(c), 6) for c in corr]
+        out["exposures_refined"] = int(np.count_nonzero(fit.refined))
+        worst = int(np.argmax(np.abs(np.log(corr))))
+        out["max_exposure_correction"] = float(corr[worst])
+        if abs(np.log(corr[worst])) > np.log1p(EXPOSURE_WARN):
+            out["warnings"].append(f"exposure {worst + 1} ({fit.labels_s[worst]:.6g} s) acts like "
+                                   f"{fit.exposures_s[worst]:.6g} s (x{corr[worst]:.3f}): a nominal label, or the "
+                                   "camera changed its gain; fused with the effective exposure")
+        if fit.rejected_correction > 1.0:
+            out["warnings"].append(f"the pictures asked for an exposure x{fit.rejected_correction:.2f} off its label, "
+                                   "beyond belief: are the times in the images' order? the labels were kept")
     most = out["max_shift_px"]
     if not aligned and most >= 2:  # (a pixel is the bitmaps' resolution: tripod stacks show 0-1)
         out["warnings"].append(f"the frames are misregistered by up to {most} px (a hand-held stack?): "
