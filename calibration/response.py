@@ -67,6 +67,11 @@ REFINE_MIN_SHARE = 0.02  # fit_stack: a frame's exposure is refined when this sh
 MAX_EXPOSURE_CORRECTION = float(np.log(2.0))  # fit_stack: beyond a factor 2 the labels are kept
 
 
+def _well_exposed(z: np.ndarray) -> np.ndarray:
+    """Samples clear of both ends' clipping, JPEG smear and crushed shadows."""
+    return (z > 10) & (z < LEVELS - 11)
+
+
 def _hat(z: np.ndarray) -> np.ndarray:
     """Debevec-Malik weight w(z) = min(z, 255 - z) + 1 [1, eq. 4] (never zero)."""
     return np.minimum(z, LEVELS - 1 - z).astype(np.float64) + 1.0
@@ -190,10 +195,9 @@ def gsolve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float,
     for off, coef in ((-1, 1.0), (0, -2.0), (1, 1.0)):  # g''(z) = g(z - 1) - 2 g(z) + g(z + 1)
         second[np.arange(zz.size), zz + off] = coef
     data_w2 = np.zeros(p)
-    for c, zc in enumerate(z):
+    sq = [(_hat(zc) if weights is None else _hat(zc) * weights[c]) ** 2 for c, zc in enumerate(z)]
+    for c, (zc, a) in enumerate(zip(z, sq, strict=True)):
         n = zc.shape[0]
-        w = _hat(zc) if weights is None else _hat(zc) * weights[c]
-        a = w * w
         data_w2 += a.sum(axis=0)
         # Eliminating ln X_i leaves each sample's terms weighted by M_i = diag(a_i) - a_i a_i^T / s_i
         m = a[:, :, None] * np.eye(p)[None] - a[:, :, None] * a[:, None, :] / a.sum(axis=1)[:, None, None]
@@ -223,11 +227,7 @@ def gsolve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float,
         sol = np.linalg.lstsq(nrm, rhs, rcond=None)[0]
     g = sol[:LEVELS * nch].reshape(nch, LEVELS).T
     d = basis @ sol[LEVELS * nch:] if nb else np.zeros(p)
-    lx = []
-    for c, zc in enumerate(z):
-        w = _hat(zc) if weights is None else _hat(zc) * weights[c]
-        a = w * w
-        lx.append(np.sum(a * (g[zc, c] - lt - d), axis=1) / a.sum(axis=1))
+    lx = [np.sum(a * (g[zc, c] - lt - d), axis=1) / a.sum(axis=1) for c, (zc, a) in enumerate(zip(z, sq, strict=True))]
     return np.ascontiguousarray(g), lx, d
 
 
@@ -242,7 +242,7 @@ def _solve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float, rounds
         wts = []
         for c, zc in enumerate(z):
             r = g[zc, c] - lx[c][:, None] - (log_t + d)[None, :]
-            mid = (zc > 10) & (zc < LEVELS - 11)
+            mid = _well_exposed(zc)
             s = 1.4826 * float(np.median(np.abs(r[mid]))) if mid.any() else 1.0
             u = r / (3.0 * max(s, 1e-4))
             wts.append(1.0 / np.sqrt(1.0 + u * u))
@@ -337,7 +337,7 @@ def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothnes
         zs.append(stack.reshape(len(frames), -1)[:, idx].T.astype(np.int64))
     refine = None
     if refine_exposures:
-        good = sum(((zc > 10) & (zc < LEVELS - 11)).sum(axis=0) for zc in zs)
+        good = sum(_well_exposed(zc).sum(axis=0) for zc in zs)
         refine = good >= REFINE_MIN_SHARE * sum(zc.shape[0] for zc in zs)
         if refine.sum() < 3:  # the level and the span take two: nothing left to refine
             refine = None

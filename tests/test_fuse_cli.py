@@ -179,6 +179,7 @@ def test_fuse_reports_what_it_did_and_a_bad_stack(stack: tuple[list[Path], list[
     out = capsys.readouterr().out
     assert "response: debevec (estimated from the stack); noise model: measured scatter per code" in out
     assert "of the usable samples rejected" in out
+    assert "exposures: 7 of 7 refined from the pictures" in out  # a tripod stack: a few percent each
     assert "warning" not in out
     _, header = read_exr(tmp_path / "a.exr")
     assert float(header["deghost_rejected"]) < 0.05
@@ -207,6 +208,10 @@ def test_a_hand_held_stack_is_reported_and_registered_with_align(shared_data: Pa
     out = capsys.readouterr().out
     assert "registration: applied, frames off by up to 5 px" in out
     assert "misregistered" not in out
+    # The phone's shortest frames are not what their labels say (one acts like 0.59 x its label):
+    # fused with what the pictures show, and said so
+    assert "exposures: 8 of 15 refined from the pictures" in out
+    assert "warning: exposure 13 (5.80013e-05 s) acts like" in out
     _, header = read_exr(tmp_path / "b.exr")
     shifts = [tuple(int(v) for v in s.split(",")) for s in str(header["aligned"]).split()]
     assert len(shifts) == len(images)
