@@ -183,6 +183,16 @@ def test_fuse_reports_what_it_did_and_a_bad_stack(stack: tuple[list[Path], list[
     assert "warning" not in out
     _, header = read_exr(tmp_path / "a.exr")
     assert float(header["deghost_rejected"]) < 0.05
+    # Two times given in the wrong order: the pictures ask for a 4x correction; the labels are
+    # kept and the report says why
+    _, times, _ = stack
+    swapped = [times[0], times[2], times[1], *times[3:]]
+    assert main(["fuse", *map(str, images), "--times", *map(str, swapped), "--out", str(tmp_path / "s.exr")]) == 0
+    out = capsys.readouterr().out
+    assert "exposures: 0 of 7 refined from the pictures" in out
+    assert "beyond belief: are the times in the images' order? the labels were kept" in out
+    _, header = read_exr(tmp_path / "s.exr")
+    assert header["exposures"] == header["exposure_labels"]
     # The pku grove's four longest exposures are white everywhere: the report says so
     d = shared_data / "exposure_stacks" / "pku_campus_trees"
     white = [str(d / f"Ldr0{i}.jpg") for i in range(1, 5)]
