@@ -44,6 +44,7 @@ References
 from __future__ import annotations
 
 import itertools
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -64,6 +65,7 @@ CENSOR = 3  # codes within this many of 0 or 255 are clipped: censored data, not
 IRLS_ROUNDS = 3
 EXPOSURE_RIDGE = 0.01  # gsolve: the exposure corrections' ridge, in units of a frame's data weight
 REFINE_MIN_SHARE = 0.02  # fit_stack: a frame's exposure is refined when this share of its samples is well exposed
+REFINE_MIN_SAMPLES = 100  # ... and at least this many (all channels): a thumbnail's few pixels say nothing
 MAX_EXPOSURE_CORRECTION = float(np.log(2.0))  # fit_stack: beyond a factor 2 the labels are kept
 
 
@@ -222,8 +224,10 @@ def gsolve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float,
     # Unsampled levels would make the normal matrix singular: a tiny ridge
     nrm[np.diag_indices(size)] += 1e-9
     try:
-        sol = sla.solve(nrm, rhs, assume_a="pos", check_finite=False)
-    except np.linalg.LinAlgError:  # rounding made it indefinite (codes no sample shows): least squares
+        with warnings.catch_warnings():  # codes no sample shows rest on the smoothness and the ridge alone
+            warnings.simplefilter("ignore", sla.LinAlgWarning)
+            sol = sla.solve(nrm, rhs, assume_a="pos", check_finite=False)
+    except np.linalg.LinAlgError:  # rounding made it indefinite: least squares
         sol = np.linalg.lstsq(nrm, rhs, rcond=None)[0]
     g = sol[:LEVELS * nch].reshape(nch, LEVELS).T
     d = basis @ sol[LEVELS * nch:] if nb else np.zeros(p)
@@ -325,7 +329,8 @@ def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothnes
     (:func:`sample_pixels`) and outliers are reweighted away (:func:`_solve`).
 
     Exposures are refined for frames with at least :data:`REFINE_MIN_SHARE` of their samples
-    well exposed (a white or black frame has nothing to say); a correction beyond
+    (and :data:`REFINE_MIN_SAMPLES`) well exposed (a white or black frame, or a thumbnail, has
+    nothing to say); a correction beyond
     :data:`MAX_EXPOSURE_CORRECTION` means the labels and the pictures do not belong together,
     or the scene changed: then every label is kept and the response solved with them.
     """
@@ -338,7 +343,7 @@ def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothnes
     refine = None
     if refine_exposures:
         good = sum(_well_exposed(zc).sum(axis=0) for zc in zs)
-        refine = good >= REFINE_MIN_SHARE * sum(zc.shape[0] for zc in zs)
+        refine = good >= max(REFINE_MIN_SHARE * sum(zc.shape[0] for zc in zs), REFINE_MIN_SAMPLES)
         if refine.sum() < 3:  # the level and the span take two: nothing left to refine
             refine = None
     g, d = _solve(zs, np.log(t), smoothness, rounds, refine)

@@ -97,7 +97,8 @@ def test_labels_that_do_not_belong_to_the_pictures_are_kept_and_flagged() -> Non
 
 def test_white_and_black_frames_keep_their_labels() -> None:
     """A frame with next to nothing well exposed (white or black) has nothing to say about its
-    exposure: its label stands, and a stack of fewer than three informative frames is not refined."""
+    exposure: its label stands; a stack of fewer than three informative frames, or a thumbnail,
+    is not refined."""
     frames, true = _stack((2.2, 2.2, 2.2), seed=7)
     frames = [np.full_like(frames[0], 255), *frames, np.zeros_like(frames[0])]
     times = [true[-1] * 64, *true, true[0] / 64]
@@ -109,3 +110,6 @@ def test_white_and_black_frames_keep_their_labels() -> None:
     assert fit.corrections[-1] == 1.0
     two = fit_stack(frames[:3], times[:3])
     assert not two.refined.any()
+    thumb = fit_stack([f[:2, :2] for f in frames], times)  # 4 pixels say nothing about an exposure
+    assert not thumb.refined.any()
+    np.testing.assert_array_equal(thumb.exposures_s, times)
