@@ -71,12 +71,6 @@ def _median_ms(fn: Any, n: int) -> tuple[float, float, list[float]]:
     return float(np.median(wall)), float(np.median(cpu)), wall
 
 
-def _timed(fn: Any) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
 def _errors(est: np.ndarray, x: np.ndarray, sel: np.ndarray) -> dict[str, float]:
     info = sum(np.where(x * t < 0.97, (t * FULL_WELL) ** 2 / (x * t * FULL_WELL + READ_NOISE**2), 0)
                for t in TIMES)
@@ -141,8 +135,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
             summary[f"{name}_{tag}opencv_robertson_even_odd_dlog"] = row["opencv_robertson"]["even_odd_dlog"]
             summary[f"{name}_{tag}correlation"] = row["lightprobe"]["log_correlation_vs_opencv_debevec"]
         frames, times = load_stack(shared, name)
-        summary[f"{name}_response_fit_s"] = float(np.median(
-            [_timed(lambda f=frames, t=times: fit_response(f, t)) for _ in range(3)]))
+        summary[f"{name}_response_fit_s"] = _median_ms(lambda f=frames, t=times: fit_response(f, t), 3)[0] / 1e3
     result = {"summary": summary, "accuracy": acc, "stacks": stacks, "simulator": simulated,
               "timings_ms": {"lightprobe": ours_ts, "opencv": cv_ts}}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -203,13 +196,13 @@ def _opencv(frames: list[np.ndarray], times: list[float], method: str) -> Any:
     return fused
 
 
-def _ours(frames: list[np.ndarray], times: list[float], deghost: bool, refine: bool = True) -> tuple[Any, list[float]]:
+def _ours(frames: list[np.ndarray], fit: Any, deghost: bool) -> tuple[Any, list[float]]:
     """Our merge function of index lists, with the stack's own response and effective exposures
-    (``lightprobe fuse``'s), and those exposures' corrections of the labels."""
-    from device.hdr.cli import fit_response, fusion_settings
+    (``fit``: :func:`device.hdr.cli.fit_response`, as ``lightprobe fuse`` has them), and those
+    exposures' corrections of the labels."""
+    from device.hdr.cli import fusion_settings
     from device.hdr.fusion import fuse
 
-    fit = fit_response(frames, times, refine_exposures=refine)
     response, exposures = fit.response, list(fit.exposures_s)
     settings = fusion_settings(response, deghost=deghost)
 
@@ -224,17 +217,22 @@ def score_stack(frames: list[np.ndarray], times: list[float]) -> dict[str, dict[
     merge of the whole stack, seconds; ours also the deghosting's rejected share, its agreement
     with ``--no-deghost`` and the exposure corrections of the labels (``lightprobe_labels``:
     ours with the labels taken as exact)."""
+    from device.hdr.cli import fit_response
     from device.hdr.quality import dynamic_range, log_correlation, subset_consistency
 
+    t0 = time.perf_counter()
+    fit = fit_response(frames, times)  # one fit for the deghosting on and off
+    fit_s = time.perf_counter() - t0
     n = len(frames)
     even, odd, whole = list(range(0, n, 2)), list(range(1, n, 2)), list(range(n))
     out: dict[str, dict[str, Any]] = {}
     full: dict[str, np.ndarray] = {}
     for name, make in (("opencv_debevec", lambda: _opencv(frames, times, "debevec")),
                        ("opencv_robertson", lambda: _opencv(frames, times, "robertson")),
-                       ("lightprobe", lambda: _ours(frames, times, True)),
-                       ("lightprobe_no_deghost", lambda: _ours(frames, times, False)),
-                       ("lightprobe_labels", lambda: _ours(frames, times, True, refine=False))):
+                       ("lightprobe", lambda: _ours(frames, fit, True)),
+                       ("lightprobe_no_deghost", lambda: _ours(frames, fit, False)),
+                       ("lightprobe_labels", lambda: _ours(frames, fit_response(frames, times, refine_exposures=False),
+                                                          True))):
         t0 = time.perf_counter()
         fused = make()
         row: dict[str, Any] = {}
@@ -244,8 +242,9 @@ def score_stack(frames: list[np.ndarray], times: list[float]) -> dict[str, dict[
         if not isinstance(a, np.ndarray):  # a FusionResult
             row["deghost_rejected_fraction"] = a.rejected_fraction
             a, e, o = a.radiance, e.radiance, o.radiance
+        shared_fit = fit_s if name in ("lightprobe", "lightprobe_no_deghost") else 0.0  # each pays for it
         row.update(even_odd_dlog=subset_consistency(e, o), dynamic_range=dynamic_range(a),
-                   seconds=time.perf_counter() - t0)
+                   seconds=time.perf_counter() - t0 + shared_fit)
         full[name] = a
         out[name] = row
     for name, row in out.items():

@@ -156,6 +156,7 @@ def rect_clear(pos: np.ndarray, dirs: np.ndarray, tan_half: np.ndarray, side: np
                 toward = -(rects[q, 0] * ax + rects[q, 1] * ay + rects[q, 2] * az) * (1.0 if side[i, q] > 0 else -1.0)
                 if toward > -sa:
                     near = True
+                    break
             if not near:
                 continue
             tx, ty, tz, bx, by, bz = _onb(ax, ay, az)
