@@ -314,7 +314,32 @@ def _check_bracket(frames: Sequence[np.ndarray], times: Sequence[float], smoothn
         raise InputError("the exposure times of a bracket must differ", param="times")
     if not np.isfinite(smoothness) or smoothness <= 0:
         raise InputError(f"smoothness {smoothness!r} must be positive", param="--smoothness")
+    _check_brightens(frames, t)
     return t
+
+
+def _check_brightens(frames: Sequence[np.ndarray], t: np.ndarray) -> None:
+    """The longest-labelled frame must be brighter than the shortest where both show the scene
+    (codes not clipped in either): a stack taken with auto-exposure on, or labelled with another
+    stack's times, does not change with its labels, and a response fitted to it is noise.
+    Checked only where the labels span at least 2x and 100 samples show the scene in both."""
+    lo, hi = int(np.argmin(t)), int(np.argmax(t))
+    if t[hi] < 2.0 * t[lo]:
+        return
+    a = np.asarray(frames[lo]).astype(np.int64).ravel()
+    b = np.asarray(frames[hi]).astype(np.int64).ravel()
+    if a.shape != b.shape:
+        return
+    both = (a >= CENSOR) & (a <= LEVELS - 1 - CENSOR) & (b >= CENSOR) & (b <= LEVELS - 1 - CENSOR)
+    n = int(both.sum())
+    if n < 100:
+        return
+    share = float((b[both] > a[both]).sum()) / n
+    if share < 0.5:
+        raise InputError(
+            f"the frames do not get brighter with exposure time: the one labelled {t[hi]:.4g} s is brighter "
+            f"than the one labelled {t[lo]:.4g} s at only {share:.0%} of the pixels both show (a bracket "
+            f"gives nearly all). Was auto-exposure on, or are these another stack's times?", param="times")
 
 
 def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothness: float = SMOOTHNESS,

@@ -149,6 +149,7 @@ def test_bad_inputs_exit_2_naming_the_culprit(small_stack: list[Path], tmp_path:
         ([a, b, "--times-file", str(junk), "--out", out], "junk.jpg"),
         ([a, b, "--times", "0.1", "0.2", "--response", str(junk), "--out", out], "junk.jpg"),
         ([a, b, "--times", "0.1", "0.2", "--out", str(tmp_path / "o.png")], "o.png"),
+        ([a, a, "--times", "0.1", "0.4", "--out", out], "do not get brighter with exposure time"),
     ]
     for argv, culprit in cases:
         code, err = _run(argv, capsys)

@@ -95,6 +95,20 @@ def test_labels_that_do_not_belong_to_the_pictures_are_kept_and_flagged() -> Non
     np.testing.assert_array_equal(fit.exposures_s, labels)
 
 
+def test_a_stack_that_does_not_brighten_with_its_labels_is_refused() -> None:
+    """Auto-exposure left on (the same picture at every label) or another stack's times: no
+    response can be fitted, and the error says why rather than invent corrections."""
+    frames, true = _stack((2.2, 2.2, 2.2), seed=9)
+    mid = frames[len(frames) // 2]
+    rng = np.random.default_rng(0)
+    flat = [np.clip(mid.astype(int) + rng.integers(-1, 2, mid.shape), 0, 255).astype(np.uint8) for _ in frames]
+    for stack in ([mid] * len(frames), flat, frames[::-1]):
+        with pytest.raises(InputError, match="do not get brighter with exposure time") as e:
+            fit_stack(stack, true)
+        assert e.value.param == "times"
+    fit_stack(frames, true)  # the real bracket passes
+
+
 def test_white_and_black_frames_keep_their_labels() -> None:
     """A frame with next to nothing well exposed (white or black) has nothing to say about its
     exposure: its label stands; a stack of fewer than three informative frames, or a thumbnail,

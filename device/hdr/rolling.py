@@ -212,8 +212,9 @@ def frame_to_map(table: object, geo_n: np.ndarray, mean_gain: np.ndarray, codes:
     """One frame's :class:`FrameMap` over the first ``rows`` output pixels of ``table`` (a
     projection table: CSR ``indptr``, ``indices``, ``data`` = geometric weight x gain).
 
-    ``codes`` (H*W, 3) pixel values, ``lut`` (L + 1, 3, 4) float32 [value, weight, variance,
-    saturated] of the frame's exposure (``packed_lut``), ``bounds``: (3,) the value of the
+    ``codes`` (H*W, 3) pixel values, ``lut`` (L + 1, 3, 5) float32 [value, weight, variance,
+    saturated, merged value] of the frame's exposure (``packed_lut``; only the first four are
+    read), ``bounds``: (3,) the value of the
     highest weightless dark code and (3,) of the saturation threshold, ``geo_n`` each table entry's
     geometric weight (``data`` / pixel gain), ``mean_gain`` (rows,) each output pixel's mean
     pixel gain. :meth:`RollingMerge.update` does the same and merges in one pass."""
