@@ -21,7 +21,8 @@ The measured scatter is in log exposure: each sample is ``X exp(eps_i)``, ``eps_
 sigma(z_i)^2)``, with ``X`` the pixel's radiance, the same for all its samples. Its maximum
 likelihood estimate is the precision-weighted mean of the logarithms,
 ``ln X = sum_i w_i ln X_i / sum_i w_i`` with ``w_i = h(z_i) / sigma(z_i)^2`` (Debevec & Malik's
-eq. 9, with these weights), and that is what the merge computes for such a response. Weighting
+eq. 6 is this log mean, with their hat as the weights), and that is what the merge computes for
+such a response. Weighting
 each sample by the variance of its *own* value (``1 / (X_i sigma)^2``) favoured the samples that
 came out low: the image came out ``1.5 sigma^2`` low, the more so at the codes that scatter more,
 and on a phone's stack (sigma ~0.3) it correlated 0.974 with OpenCV's merge instead of 0.995.
@@ -331,8 +332,8 @@ def _merge_kernel(z, lut, lower, deghost, k2, rel, ref_rel2, logd, out, sat_mask
                 if ghost:
                     rejected[p] += 1
                     continue
-            # Weighted mean of the estimates X_i = E(z_i) / (t_i g_i) (Debevec-Malik eq. 6), or of
-            # their logarithms (Debevec-Malik eq. 9) under a log-normal noise model
+            # Weighted mean of the estimates X_i = E(z_i) / (t_i g_i), or of their logarithms under
+            # a log-normal noise model (Debevec-Malik eq. 6)
             n0 += w0 * a0[4]
             n1 += w1 * a1[4]
             n2 += w2 * a2[4]
