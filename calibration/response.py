@@ -69,6 +69,11 @@ REFINE_MIN_SAMPLES = 100  # ... and at least this many (all channels): a thumbna
 MAX_EXPOSURE_CORRECTION = float(np.log(2.0))  # fit_stack: beyond a factor 2 the labels are kept
 
 
+def _uncensored(z: np.ndarray) -> np.ndarray:
+    """Codes that are values, not clipped data (within :data:`CENSOR` of neither end)."""
+    return (z >= CENSOR) & (z <= LEVELS - 1 - CENSOR)
+
+
 def _well_exposed(z: np.ndarray) -> np.ndarray:
     """Samples clear of both ends' clipping, JPEG smear and crushed shadows."""
     return (z > 10) & (z < LEVELS - 11)
@@ -100,7 +105,7 @@ def pair_bins(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarray,
     for short, long_ in itertools.pairwise(order):
         a = np.asarray(frames[long_])[..., channel].ravel().astype(np.int64)
         b = np.asarray(frames[short])[..., channel].ravel().astype(np.int64)
-        ok = (a >= CENSOR) & (a <= LEVELS - 1 - CENSOR) & (b >= CENSOR) & (b <= LEVELS - 1 - CENSOR)
+        ok = _uncensored(a) & _uncensored(b)
         h = np.bincount(a[ok] * LEVELS + b[ok], minlength=LEVELS * LEVELS)
         k = np.flatnonzero(h)
         za.append(k // LEVELS)
@@ -330,7 +335,7 @@ def _check_brightens(frames: Sequence[np.ndarray], t: np.ndarray) -> None:
     b = np.asarray(frames[hi]).astype(np.int64).ravel()
     if a.shape != b.shape:
         return
-    both = (a >= CENSOR) & (a <= LEVELS - 1 - CENSOR) & (b >= CENSOR) & (b <= LEVELS - 1 - CENSOR)
+    both = _uncensored(a) & _uncensored(b)
     n = int(both.sum())
     if n < 100:
         return
