@@ -54,9 +54,9 @@ from device.core.calibration import Response, repair_inverse
 from device.core.errors import InputError
 from drivers.base import Camera, Controls, Frame
 
-__all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "StackFit", "capture_bracket", "code_scatter",
-           "compare_inverse", "fit_stack", "gsolve", "linearity_check", "pair_bins", "response_from_stack",
-           "sample_pixels", "solve_debevec"]
+__all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "StackFit", "capture_bracket", "check_brightens",
+           "code_scatter", "compare_inverse", "fit_stack", "gsolve", "linearity_check", "pair_bins",
+           "response_from_stack", "sample_pixels", "solve_debevec"]
 
 LEVELS = 256
 SMOOTHNESS = 40.0  # lambda of eq. 3 per data row (gsolve)
@@ -319,20 +319,22 @@ def _check_bracket(frames: Sequence[np.ndarray], times: Sequence[float], smoothn
         raise InputError("the exposure times of a bracket must differ", param="times")
     if not np.isfinite(smoothness) or smoothness <= 0:
         raise InputError(f"smoothness {smoothness!r} must be positive", param="--smoothness")
-    _check_brightens(frames, t)
+    check_brightens(frames, t)
     return t
 
 
-def _check_brightens(frames: Sequence[np.ndarray], t: np.ndarray) -> None:
-    """The longest-labelled frame must be brighter than the shortest where both show the scene
-    (codes not clipped in either): a stack taken with auto-exposure on, or labelled with another
-    stack's times, does not change with its labels, and a response fitted to it is noise.
-    Checked only where the labels span at least 2x and 100 samples show the scene in both."""
+def check_brightens(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarray) -> None:
+    """Raise :class:`InputError` (``times``) unless the longest-labelled frame is brighter than
+    the shortest where both show the scene (codes not clipped in either): a stack taken with
+    auto-exposure on, or labelled with another stack's times, does not change with its labels;
+    a response fitted to it is noise, and a merge with a known one is too. Checked only where the
+    labels span at least 2x and 100 samples show the scene in both."""
+    t = np.asarray(times, np.float64)
     lo, hi = int(np.argmin(t)), int(np.argmax(t))
     if t[hi] < 2.0 * t[lo]:
         return
-    a = np.asarray(frames[lo]).astype(np.int64).ravel()
-    b = np.asarray(frames[hi]).astype(np.int64).ravel()
+    a = np.asarray(frames[lo]).ravel()  # compared as they are: no wide copy of a full-size frame
+    b = np.asarray(frames[hi]).ravel()
     if a.shape != b.shape:
         return
     both = _uncensored(a) & _uncensored(b)

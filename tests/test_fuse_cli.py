@@ -90,8 +90,9 @@ def test_real_stack_dynamic_range_and_lamp_not_clipped(fused_room: tuple) -> Non
     assert lum[resolved].max() > 1000 * np.median(lum)
 
 
-def test_times_on_the_command_line_and_a_calibrated_response(tmp_path: Path) -> None:
-    """A synthetic stack from a known gamma response, fused with that response as a file."""
+def test_times_on_the_command_line_and_a_calibrated_response(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A synthetic stack from a known gamma response, fused with that response as a file; the
+    same picture three times is refused with the response given too (no fit to notice it)."""
     rng = np.random.default_rng(4)
     x = np.exp(rng.uniform(np.log(0.02), np.log(1.0), (40, 60, 3)))
     times = ["1/50", "0.08", "0.32"]
@@ -112,6 +113,11 @@ def test_times_on_the_command_line_and_a_calibrated_response(tmp_path: Path) -> 
     ok = (x * 3 * tv[-1] > 0.02)
     rel = np.abs(img / (3 * x) - 1)[ok]
     assert np.median(rel) < 0.005
+    capsys.readouterr()
+    same = [str(paths[1])] * 3
+    assert main(["fuse", *same, "--times", *times, "--response", str(cal), "--out", str(tmp_path / "s.exr")]) == 2
+    assert "do not get brighter with exposure time" in capsys.readouterr().err
+    assert not (tmp_path / "s.exr").exists()
 
 
 @pytest.fixture

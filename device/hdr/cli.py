@@ -10,8 +10,9 @@ phone changes its gain unlabelled, so the frames are fused with the exposures th
 source, the exposure corrections, the frames' misregistration (``--align`` registers a hand-held
 stack first, :mod:`device.hdr.align`), the share of samples the deghosting rejected, the
 saturated and too-dark fractions, the dynamic range, and warnings for a bad stack. Bad input
-(unreadable image, mismatched sizes, missing or non-positive times, count mismatch) exits 2 with a
-one-line message naming the file or value (CONVENTIONS.md).
+(unreadable image, mismatched sizes, missing or non-positive times, count mismatch, frames that
+do not get brighter with their times) exits 2 with a one-line message naming the file or value
+(CONVENTIONS.md).
 """
 
 from __future__ import annotations
@@ -175,7 +176,11 @@ def _run(ns: argparse.Namespace) -> int:
         frames = apply_shifts(frames, shifts)
     source = f"{ns.response}" if response is not None else "estimated from the stack"
     fit = None
-    if response is None:
+    if response is not None:  # (the stack's own fit checks this itself)
+        from calibration.response import check_brightens
+
+        check_brightens(frames, times)
+    else:
         fit = fit_response(frames, times, ns.smoothness)
         response = fit.response
     exposures = list(fit.exposures_s) if fit is not None else times

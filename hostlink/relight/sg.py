@@ -258,7 +258,8 @@ class _Object:
     version: int = 0        # bumped whenever its vertices change (_place)
     # its plane (n, c) and rectangle row (rect_clear's 17 numbers), of ``version`` (_shape)
     shape_info: tuple[int, tuple[np.ndarray, float] | None, np.ndarray | None] | None = None
-    bound_info: tuple[int, np.ndarray, float] | None = None   # its bounding sphere, of ``version``
+    # its bounding box (lo, hi) and sphere (centre, radius), of ``version`` (_object_bounds)
+    bound_info: tuple[int, np.ndarray, np.ndarray, np.ndarray, float] | None = None
 
 
 class SGRelighter:
@@ -433,12 +434,23 @@ class SGRelighter:
         return self._normals
 
     # ---- visibility --------------------------------------------------------------------------
+    def _object_bounds(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Object ``k``'s bounding box (lo, hi) and sphere (centre, radius), computed again only
+        when its vertices changed."""
+        ob = self.objects[k]
+        if ob.bound_info is None or ob.bound_info[0] != ob.version:
+            v = self.vertices[ob.base:ob.base + len(ob.rest)]
+            lo, hi = v.min(axis=0), v.max(axis=0)
+            ck = (lo + hi) / 2
+            ob.bound_info = (ob.version, lo, hi, ck, float(np.linalg.norm(v - ck, axis=1).max()))
+        return ob.bound_info[1], ob.bound_info[2], ob.bound_info[3], ob.bound_info[4]
+
     def _voxel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of the objects the voxels hold (all but the rectangles; all if none)."""
         rect = self._rects()[1]
-        keep = [ob for k, ob in enumerate(self.objects) if k not in rect] or self.objects
-        v = np.concatenate([self.vertices[ob.base:ob.base + len(ob.rest)] for ob in keep])
-        return v.min(axis=0), v.max(axis=0)
+        keep = [k for k in range(len(self.objects)) if k not in rect] or list(range(len(self.objects)))
+        boxes = [self._object_bounds(k) for k in keep]
+        return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
     def _fit_grid(self) -> None:
         """Fit the voxel grid to the voxelised objects (1.25 x their longest side, so a floor's
@@ -505,12 +517,8 @@ class SGRelighter:
         if self._bound_cache is None or self._bound_cache[0] != self._geometry:
             c = np.zeros((len(self.objects), 3))
             r = np.zeros(len(self.objects))
-            for k, ob in enumerate(self.objects):
-                if ob.bound_info is None or ob.bound_info[0] != ob.version:   # only what changed
-                    v = self.vertices[ob.base:ob.base + len(ob.rest)]
-                    ck = (v.min(axis=0) + v.max(axis=0)) / 2
-                    ob.bound_info = (ob.version, ck, float(np.linalg.norm(v - ck, axis=1).max()))
-                c[k], r[k] = ob.bound_info[1], ob.bound_info[2]
+            for k in range(len(self.objects)):
+                _, _, c[k], r[k] = self._object_bounds(k)
             self._bound_cache = (self._geometry, c, r)
         return self._bound_cache[1], self._bound_cache[2]
 
