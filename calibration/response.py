@@ -9,9 +9,10 @@ estimate [2] (``cv2.createCalibrateRobertson``). A stack fused with its own resp
 as Mitsunaga & Nayar [4] do for unknown exposure ratios): shutter labels are nominal and a
 phone changes its gain unlabelled. A calibration (:func:`solve_debevec`) keeps the labels: its
 response is used later with the exposures the driver reports.
-Either way the bracket also gives ``log_sigma``, the scatter of one sample per code, measured on
-every pixel through the joint histograms of consecutive exposures [3] (:func:`code_scatter`),
-which the HDR merge uses as its noise model.
+Either way the bracket also gives ``log_sigma`` and ``log_sigma_core``, the scatter of one sample
+per code (its variance, tails included, and its typical spread), measured on every pixel through
+the joint histograms of consecutive exposures [3] (:func:`code_scatter`), which the HDR merge
+uses as its noise model.
 ``lightprobe fuse`` (estimating a stack's own response) and the technicians' ``lightprobe
 calibrate response`` both call :func:`response_from_stack` / :func:`solve_debevec`. Every table
 goes through the one repair rule (:func:`device.core.calibration.repair_inverse`) and is
@@ -61,6 +62,8 @@ __all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "StackFit", "
 LEVELS = 256
 SMOOTHNESS = 40.0  # lambda of eq. 3 per data row (gsolve)
 SAMPLES = 3000  # sampled pixels per channel
+SCATTER_QUANTILE = 0.6827  # of |r|: one standard deviation of Gaussian scatter (code_scatter)
+SCATTER_MIN_COUNT = 20  # pixels a code needs for its own scatter (code_scatter)
 CENSOR = 3  # codes within this many of 0 or 255 are clipped: censored data, not values
 IRLS_ROUNDS = 3
 EXPOSURE_RIDGE = 0.01  # gsolve: the exposure corrections' ridge, in units of a frame's data weight
@@ -259,33 +262,75 @@ def _solve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float, rounds
     return g, d
 
 
-def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarray, inverse: np.ndarray) -> np.ndarray:
-    """``log_sigma`` (256, 3): how far one sample at code z scatters in log exposure under the
-    response ``inverse``, measured on the bracket itself.
+def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarray,
+                 inverse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(log_sigma, log_sigma_core)``, each (256, 3): how far one sample at code z scatters in
+    log exposure under the response ``inverse``, measured on the bracket itself.
 
-    Every pixel of consecutive exposures gives the disagreement ``ln X_a - ln X_b`` of its two
-    estimates; averaged over the pixels of each code (count-weighted, clipped at three times the
-    typical disagreement, so moving objects do not count) it is ``sigma(za)^2 + sigma(zb)^2``,
-    split evenly between the two. It holds everything that makes samples at that code disagree:
-    shot, read and JPEG noise, quantisation and the response's own error. Codes no pixel shows
-    take their neighbours' value.
+    Every pixel of consecutive exposures gives the disagreement ``r = ln X_a - ln X_b`` of its two
+    estimates, ``sigma(za)^2 + sigma(zb)^2`` in expectation, split evenly between the two codes.
+    It holds everything that makes samples at that code disagree: shot, read and JPEG noise,
+    quantisation and the response's own error. On real photographs that spread is heavy-tailed
+    (edges, sub-pixel misregistration, leaves and clouds that moved), so two figures describe it:
+
+    - ``log_sigma``, the root mean square of ``r`` over the pixels of each code (count-weighted,
+      clipped at three times the typical disagreement, so moving objects do not count): the
+      variance of a sample, tails included, which sums of many samples (the live map's
+      footprints) and the deghosting's consistency test need;
+    - ``log_sigma_core``, the half-width that holds :data:`SCATTER_QUANTILE` (68.3%) of the
+      ``|r|`` of each code, one standard deviation for Gaussian scatter: the precision of a
+      *typical* sample, which the merge weights by. On makehdr's room the rms is 1.4-1.7 times
+      the core in green at codes 64-200; weighting by the rms let the tails set the precision of
+      every sample at their codes.
+
+    Codes no pixel shows (the core: fewer than :data:`SCATTER_MIN_COUNT`) take their neighbours'
+    value.
     """
     g = np.log(np.maximum(np.asarray(inverse, np.float64), 1e-300))
-    out = np.empty((LEVELS, 3))
+    rms, core = np.empty((LEVELS, 3)), np.empty((LEVELS, 3))
+    codes = np.arange(LEVELS)
     for c in range(3):
         b = pair_bins(frames, times, c)
         if b.za.size == 0:
-            out[:, c] = 1.0
+            rms[:, c] = core[:, c] = 1.0
             continue
-        r2 = (g[b.za, c] - g[b.zb, c] - b.dlog_t) ** 2
+        r = g[b.za, c] - g[b.zb, c] - b.dlog_t
+        r2 = r**2
         clip = 9.0 * float(np.average(np.minimum(r2, np.quantile(r2, 0.9)), weights=b.count))
         r2 = np.minimum(r2, clip)
         num = np.bincount(b.za, b.count * r2, LEVELS) + np.bincount(b.zb, b.count * r2, LEVELS)
         den = np.bincount(b.za, b.count, LEVELS) + np.bincount(b.zb, b.count, LEVELS)
         seen = den > 0
-        ms = np.interp(np.arange(LEVELS), np.flatnonzero(seen), num[seen] / den[seen])
-        out[:, c] = np.sqrt(np.maximum(ms / 2.0, 1e-8))
-    return out
+        ms = np.interp(codes, np.flatnonzero(seen), num[seen] / den[seen])
+        rms[:, c] = np.sqrt(np.maximum(ms / 2.0, 1e-8))
+        # the core: per code, the weighted SCATTER_QUANTILE of |r|. A code pair's |r| is one of a
+        # few discrete values (codes are integers), so the distribution function is drawn through
+        # the points half-way between consecutive values, where each value's weight is complete
+        # (the value stands for its rounding interval): sorted by code, then |r|, the key code +
+        # (share of the code's weight up to here) rises through the whole stack
+        z, a, w = np.concatenate([b.za, b.zb]), np.abs(np.concatenate([r, r])), np.concatenate([b.count, b.count])
+        o = np.lexsort((a, z))
+        z, a, w = z[o], a[o], w[o]
+        cw = np.cumsum(w)
+        first = np.searchsorted(z, codes)
+        before = np.where(first > 0, cw[np.maximum(first - 1, 0)], 0.0)
+        share = (cw - before[z]) / den[z]
+        same_next = np.append(z[1:] == z[:-1], False)
+        upper = np.where(same_next, (a + np.append(a[1:], 0.0)) / 2, a)  # where value k's weight is complete
+        hi = np.minimum(np.searchsorted(z + share, codes + SCATTER_QUANTILE), a.size - 1)
+        lo = hi - 1
+        prev = (lo >= 0) & (z[np.maximum(lo, 0)] == codes)
+        u0 = np.where(prev, upper[np.maximum(lo, 0)], 0.0)
+        f0 = np.where(prev, share[np.maximum(lo, 0)], 0.0)
+        f = np.clip((SCATTER_QUANTILE - f0) / np.maximum(share[hi] - f0, 1e-12), 0.0, 1.0)
+        half = u0 + f * (upper[hi] - u0)
+        enough = den >= SCATTER_MIN_COUNT
+        if enough.sum() < 2:  # a thumbnail: every code any pixel shows
+            enough = seen
+        q2 = half**2
+        ms = np.interp(codes, np.flatnonzero(enough), q2[enough]) if enough.sum() > 1 else np.full(LEVELS, q2[enough][0])
+        core[:, c] = np.sqrt(np.maximum(ms / 2.0, 1e-8))
+    return rms, core
 
 
 @dataclass(frozen=True)
@@ -387,7 +432,7 @@ def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothnes
     exposures = t * np.exp(d)
     inv = repair_inverse(np.exp(np.clip(g, -700, 700)))
     resp = Response("table", 8, inv, "debevec").normalised()
-    resp = Response(resp.model, resp.bits, resp.inverse, resp.method, code_scatter(frames, exposures, resp.inverse))
+    resp = Response(resp.model, resp.bits, resp.inverse, resp.method, *code_scatter(frames, exposures, resp.inverse))
     return StackFit(resp, exposures, t, np.zeros(t.size, bool) if refine is None else refine, rejected)
 
 
@@ -423,7 +468,7 @@ def response_from_stack(images: Sequence[np.ndarray], exposures_s: Sequence[floa
         table = cv2.createCalibrateRobertson().process(imgs, times).reshape(LEVELS, 3)
         resp = Response("table", 8, repair_inverse(table), method).normalised()
         return Response(resp.model, resp.bits, resp.inverse, resp.method,
-                        code_scatter(imgs, exposures_s, resp.inverse))
+                        *code_scatter(imgs, exposures_s, resp.inverse))
     raise InputError(f"unknown response method {method!r} (debevec or robertson)", param="--method")
 
 

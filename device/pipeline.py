@@ -716,7 +716,7 @@ class _Geometry:
         else:
             inv = _sanitized(resp.inverse)
             lut = packed_lut(inv, exposure, gain, black=0.0, sat=float(inv.shape[0] - 1), settings=st,
-                             log_sigma=resp.log_sigma)
+                             log_sigma=resp.log_sigma, log_sigma_core=resp.log_sigma_core)
         return lut, lut_bounds(lut)
 
     def weighted_luminance(self, fused: np.ndarray) -> np.ndarray:

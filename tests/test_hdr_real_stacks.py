@@ -41,9 +41,7 @@ def test_subset_consistency_beats_opencv(scores: dict[str, Any]) -> None:
         print(f"{name}: even/odd |dlog| ours {ours:.4f}, OpenCV Debevec {deb:.4f}, Robertson {rob:.4f}")
         assert ours <= rob, name
         assert ours <= deb, name
-        # 0.8 x OpenCV Debevec's where OpenCV is far from the noise floor; on the 1-stop Fuji
-        # stack OpenCV already sits at it (its subsets disagree by 1.1%) and we reach 0.83 x
-        assert ours <= (0.85 if name == "makehdr_room_window" else 0.8) * deb, name
+        assert ours <= 0.8 * deb, name  # makehdr, the closest: 0.796 x when this was written
 
 
 def test_effective_exposures_make_the_subsets_agree(scores: dict[str, Any]) -> None:

@@ -127,3 +127,40 @@ def test_white_and_black_frames_keep_their_labels() -> None:
     thumb = fit_stack([f[:2, :2] for f in frames], times)  # 4 pixels say nothing about an exposure
     assert not thumb.refined.any()
     np.testing.assert_array_equal(thumb.exposures_s, times)
+
+
+def test_scatter_core_is_the_typical_sample_spread_and_rms_holds_the_tails() -> None:
+    """A bracket whose samples scatter log-normally (sigma 0.03) with one in twenty thrown far off
+    (a leaf that moved, sigma 0.5): ``log_sigma_core`` finds the typical spread, ``log_sigma`` (the
+    rms) the tails too; both survive the JSON round trip."""
+    from calibration.response import code_scatter
+    from device.core.calibration import Response
+
+    rng = np.random.default_rng(5)
+    x = np.exp(rng.uniform(np.log(2e-3), np.log(1.0), (200, 240, 3)))
+    times = [0.25, 0.5, 1.0, 2.0, 4.0]
+    frames = []
+    for t in times:
+        eps = rng.normal(0.0, 0.03, x.shape) + np.where(rng.random(x.shape) < 0.05, rng.normal(0.0, 0.5, x.shape), 0)
+        frames.append(np.rint(255 * np.clip(x * t * np.exp(eps), 0, 1) ** (1 / 2.2)).astype(np.uint8))
+    z = np.arange(256) / 255.0
+    inverse = np.repeat((z**2.2)[:, None], 3, axis=1)
+    rms, core = code_scatter(frames, times, inverse)
+    mid = slice(60, 220)  # quantisation (2.2 / z per code / sqrt(12) <= 0.011 here) adds little
+    q = 2.2 / np.arange(256)[mid, None] / np.sqrt(12)
+    typical = np.sqrt(0.03**2 + q**2)
+    # the 68% half-width of this mixture is ~1.15 sigma of its core (a tenth of the pairs hold an
+    # outlier), the rms ~2.5 sigma; per code it is estimated from ~700 pixels
+    ratio = core[mid] / typical
+    assert ratio.min() > 0.85, ratio.min()
+    assert ratio.max() < 1.6, ratio.max()  # the rms would be ~2.5
+    assert np.median(ratio) < 1.3, np.median(ratio)
+    assert np.all(rms[mid] > 1.5 * core[mid]), (rms[mid] / core[mid]).min()
+    resp = Response("table", 8, inverse, "debevec", rms, core)
+    back = Response.from_json(resp.to_json())
+    np.testing.assert_allclose(back.log_sigma_core, core, atol=1e-6)
+    np.testing.assert_allclose(back.normalised().log_sigma_core, core, atol=1e-6)
+    bad = resp.to_json()
+    bad["log_sigma_core"][0][5] = -1.0
+    with pytest.raises(InputError, match="log_sigma_core"):
+        Response.from_json(bad)

@@ -173,14 +173,18 @@ class Response:
     exposure, as measured on the calibration bracket (sensor and JPEG noise, quantisation and the
     response's own misfit together). When present the HDR merge weights and the deghosting use it
     instead of the generic sensor noise model (:mod:`device.hdr.fusion`); a truth or linear
-    response has none.
+    response has none. ``log_sigma_core`` (same shape, optional): the typical sample's spread (the
+    68.3% half-width of the same disagreements) where ``log_sigma`` is their root mean square: the
+    merge weights by the core and tests consistency and sums variances with ``log_sigma``
+    (:func:`calibration.response.code_scatter`); without it the merge weights by ``log_sigma``.
     """
 
     model: str  # "table" (processed output) or "linear" (raw)
     bits: int
     inverse: np.ndarray  # (2**bits, 3) float64
     method: str = ""  # how it was measured: "truth", "debevec", "robertson"
-    log_sigma: np.ndarray | None = None  # (2**bits, 3) float64, log-exposure scatter per code
+    log_sigma: np.ndarray | None = None  # (2**bits, 3) float64, log-exposure scatter per code (rms)
+    log_sigma_core: np.ndarray | None = None  # (2**bits, 3) float64, the same, its 68.3% half-width
 
     @classmethod
     def linear(cls, bits: int, black_level: float = 0.0, white_level: float | None = None) -> Response:
@@ -192,16 +196,18 @@ class Response:
     def normalised(self) -> Response:
         """The same response scaled so the largest channel's full-scale code maps to 1 (the
         exposure that saturates), as :meth:`linear` is: the convention every solver returns.
-        ``log_sigma`` is scale-free and kept."""
+        ``log_sigma`` and ``log_sigma_core`` are scale-free and kept."""
         top = float(np.max(self.inverse[-1]))
         return Response(self.model, self.bits, self.inverse / (top if top > 0 else 1.0), self.method,
-                        self.log_sigma)
+                        self.log_sigma, self.log_sigma_core)
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"model": self.model, "bits": self.bits, "method": self.method,
                                "inverse": np.round(self.inverse.T, 12).tolist()}
         if self.log_sigma is not None:
             out["log_sigma"] = np.round(self.log_sigma.T, 6).tolist()
+        if self.log_sigma_core is not None:
+            out["log_sigma_core"] = np.round(self.log_sigma_core.T, 6).tolist()
         return out
 
     @classmethod
@@ -212,12 +218,15 @@ class Response:
         inv = _arr(d.get("inverse"), (3, 1 << bits), "response.inverse").T.copy()
         if np.any(np.diff(inv, axis=0) < 0):
             raise InputError("response.inverse must be non-decreasing", param="response.inverse")
-        sig = None
-        if d.get("log_sigma") is not None:
-            sig = _arr(d.get("log_sigma"), (3, 1 << bits), "response.log_sigma").T.copy()
-            if np.any(sig < 0):
-                raise InputError("response.log_sigma must be non-negative", param="response.log_sigma")
-        return cls(str(d.get("model", "table")), bits, inv, str(d.get("method", "")), sig)
+        sig: dict[str, np.ndarray | None] = {}
+        for key in ("log_sigma", "log_sigma_core"):
+            table = None
+            if d.get(key) is not None:
+                table = _arr(d.get(key), (3, 1 << bits), f"response.{key}").T.copy()
+                if np.any(table < 0):
+                    raise InputError(f"response.{key} must be non-negative", param=f"response.{key}")
+            sig[key] = table
+        return cls(str(d.get("model", "table")), bits, inv, str(d.get("method", "")), **sig)
 
 
 @dataclass(frozen=True)
