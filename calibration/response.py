@@ -279,9 +279,9 @@ def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarr
       footprints) and the deghosting's consistency test need;
     - ``log_sigma_core``, the half-width that holds :data:`SCATTER_QUANTILE` (68.3%) of the
       ``|r|`` of each code, one standard deviation for Gaussian scatter: the precision of a
-      *typical* sample, which the merge weights by. On makehdr's room the rms is 1.4-1.7 times
-      the core in green at codes 64-200; weighting by the rms let the tails set the precision of
-      every sample at their codes.
+      *typical* sample, which the merge weights by. On makehdr's room the rms is 1.2-2.3 times
+      the core in green at codes 64-200, a ratio that varies from code to code: weighting by the
+      rms let the tails set the precision of every sample at their codes.
 
     Codes no pixel shows (the core: fewer than :data:`SCATTER_MIN_COUNT`) take their neighbours'
     value.
