@@ -26,6 +26,7 @@ import numpy as np
 
 from device.core.primary import PrimaryLight, extract_primary
 from device.core.sh import SHProjector, direction_to_convention, to_convention
+from device.core.sphere import lit_rows
 
 __all__ = ["SH_VERSION", "Environment", "EnvironmentEstimator"]
 
@@ -85,7 +86,7 @@ class EnvironmentEstimator:
     def estimate(self, equirect: np.ndarray, **meta: Any) -> Environment:
         a = np.asarray(equirect)
         h = a.shape[0]
-        rows = h // 2 if h >= 2 and not a[h // 2:].any() else h
+        rows = lit_rows(a)
         if self._proj is None or self._proj.height != h or self._proj.rows != rows:
             self._proj = SHProjector(h, rows)
         coeffs = self._proj.update(a).copy()

@@ -60,6 +60,7 @@ from device.core.sphere import (
     directions_from_angles,
     equirect_directions,
     equirect_row_solid_angle,
+    lit_rows,
     luminance,
 )
 
@@ -417,7 +418,7 @@ def fit_sg(equirect: np.ndarray, *, levels: tuple[int, ...] = DEFAULT_LEVELS, re
     h = a.shape[0]
     full = _clean(a)
     if rows is None:
-        rows = h // 2 if not full[h // 2:].any() else h
+        rows = lit_rows(full)
     axes: list[np.ndarray] = []  # per peak lobe, then per level: (n, 3) axes, (n,) sharpness, (n, 3) amplitudes
     lams: list[np.ndarray] = []
     amps: list[np.ndarray] = []

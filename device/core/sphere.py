@@ -28,6 +28,7 @@ __all__ = [
     "equirect_integral",
     "equirect_row_solid_angle",
     "equirect_solid_angle",
+    "lit_rows",
     "luminance",
 ]
 
@@ -81,6 +82,14 @@ def equirect_directions(height: int, width: int | None = None) -> np.ndarray:
     theta = np.pi * (np.arange(height) + 0.5) / height
     phi = 2 * np.pi * (np.arange(width) + 0.5) / width
     return directions_from_angles(theta[:, None], phi[None, :])
+
+
+def lit_rows(equirect: np.ndarray) -> int:
+    """The rows of an (H, 2H, ...) map that hold light: its upper half when the lower half is
+    black (a probe's upper-hemisphere map), else all of them."""
+    a = np.asarray(equirect)
+    h = a.shape[0]
+    return h // 2 if h >= 2 and not a[h // 2:].any() else h
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:

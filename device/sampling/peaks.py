@@ -37,6 +37,7 @@ from device.core.sphere import (
     coarse_equirect,
     directions_from_angles,
     equirect_row_solid_angle,
+    lit_rows,
     luminance,
 )
 
@@ -74,7 +75,10 @@ def find_peaks(equirect: np.ndarray, *, threshold: float | None = None,
 
     Parameters
     ----------
-    threshold : luminance (radiance unit) a pixel must exceed; ``None`` -> :func:`peak_threshold`.
+    threshold : luminance (radiance unit) a pixel must exceed; ``None`` -> :func:`peak_threshold`,
+        its mean taken over the rows that hold light (:func:`device.core.sphere.lit_rows`: a
+        probe's hemisphere map, lower half black, is not a sphere with a black half, whose halved
+        mean made its bright sky peaks).
     relative, contrast : parameters of the automatic threshold.
     min_energy_fraction : drop components carrying less of the map's luminance integral.
     max_peaks : keep at most this many (by energy).
@@ -89,7 +93,7 @@ def find_peaks(equirect: np.ndarray, *, threshold: float | None = None,
     total = float((lum.astype(np.float64).sum(axis=1) * omega_row).sum())
     if total <= 0:
         return []
-    t = peak_threshold(lum, omega_row, relative, contrast) if threshold is None else threshold
+    t = peak_threshold(lum, omega_row, relative, contrast, lit_rows(clean)) if threshold is None else threshold
     labels, n = _sphere_labels(lum > t)
     if n == 0:
         return []
