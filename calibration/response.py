@@ -262,6 +262,31 @@ def _solve(z: Sequence[np.ndarray], log_t: np.ndarray, smoothness: float, rounds
     return g, d
 
 
+def _quantile_per_code(z: np.ndarray, a: np.ndarray, w: np.ndarray, total: np.ndarray, q: float) -> np.ndarray:
+    """(LEVELS,): per code, the ``q`` quantile of the values ``a`` of the entries at that code
+    ``z``, weighted by ``w`` (``total``: each code's weight). A code pair's ``|r|`` is one of a
+    few discrete values (codes are integers), so the distribution function is drawn through the
+    points half-way between consecutive values, where each value's weight is complete (a value
+    stands for its rounding interval). Sorted by code, then value, the key ``code + share of the
+    code's weight up to here`` rises through all entries: one search finds every code's place."""
+    codes = np.arange(LEVELS)
+    o = np.lexsort((a, z))
+    z, a, w = z[o], a[o], w[o]
+    cw = np.cumsum(w)
+    first = np.searchsorted(z, codes)
+    before = np.where(first > 0, cw[np.maximum(first - 1, 0)], 0.0)
+    share = (cw - before[z]) / total[z]
+    same_next = np.append(z[1:] == z[:-1], False)
+    upper = np.where(same_next, (a + np.append(a[1:], 0.0)) / 2, a)  # where value k's weight is complete
+    hi = np.minimum(np.searchsorted(z + share, codes + q), a.size - 1)
+    lo = np.maximum(hi - 1, 0)
+    prev = (hi > 0) & (z[lo] == codes)  # the point before, else (0, 0)
+    u0 = np.where(prev, upper[lo], 0.0)
+    f0 = np.where(prev, share[lo], 0.0)
+    f = np.clip((q - f0) / np.maximum(share[hi] - f0, 1e-12), 0.0, 1.0)
+    return u0 + f * (upper[hi] - u0)
+
+
 def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarray,
                  inverse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(log_sigma, log_sigma_core)``, each (256, 3): how far one sample at code z scatters in
@@ -303,27 +328,8 @@ def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarr
         seen = den > 0
         ms = np.interp(codes, np.flatnonzero(seen), num[seen] / den[seen])
         rms[:, c] = np.sqrt(np.maximum(ms / 2.0, 1e-8))
-        # the core: per code, the weighted SCATTER_QUANTILE of |r|. A code pair's |r| is one of a
-        # few discrete values (codes are integers), so the distribution function is drawn through
-        # the points half-way between consecutive values, where each value's weight is complete
-        # (the value stands for its rounding interval): sorted by code, then |r|, the key code +
-        # (share of the code's weight up to here) rises through the whole stack
-        z, a, w = np.concatenate([b.za, b.zb]), np.abs(np.concatenate([r, r])), np.concatenate([b.count, b.count])
-        o = np.lexsort((a, z))
-        z, a, w = z[o], a[o], w[o]
-        cw = np.cumsum(w)
-        first = np.searchsorted(z, codes)
-        before = np.where(first > 0, cw[np.maximum(first - 1, 0)], 0.0)
-        share = (cw - before[z]) / den[z]
-        same_next = np.append(z[1:] == z[:-1], False)
-        upper = np.where(same_next, (a + np.append(a[1:], 0.0)) / 2, a)  # where value k's weight is complete
-        hi = np.minimum(np.searchsorted(z + share, codes + SCATTER_QUANTILE), a.size - 1)
-        lo = hi - 1
-        prev = (lo >= 0) & (z[np.maximum(lo, 0)] == codes)
-        u0 = np.where(prev, upper[np.maximum(lo, 0)], 0.0)
-        f0 = np.where(prev, share[np.maximum(lo, 0)], 0.0)
-        f = np.clip((SCATTER_QUANTILE - f0) / np.maximum(share[hi] - f0, 1e-12), 0.0, 1.0)
-        half = u0 + f * (upper[hi] - u0)
+        half = _quantile_per_code(np.concatenate([b.za, b.zb]), np.abs(np.concatenate([r, r])),
+                                  np.concatenate([b.count, b.count]), den, SCATTER_QUANTILE)
         enough = den >= SCATTER_MIN_COUNT
         if enough.sum() < 2:  # a thumbnail: every code any pixel shows
             enough = seen
