@@ -314,6 +314,10 @@ def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarr
     g = np.log(np.maximum(np.asarray(inverse, np.float64), 1e-300))
     rms, core = np.empty((LEVELS, 3)), np.empty((LEVELS, 3))
     codes = np.arange(LEVELS)
+
+    def per_sample(pair_var: np.ndarray, measured: np.ndarray) -> np.ndarray:  # half a pair's, gaps filled
+        return np.sqrt(np.maximum(np.interp(codes, np.flatnonzero(measured), pair_var[measured]) / 2.0, 1e-8))
+
     for c in range(3):
         b = pair_bins(frames, times, c)
         if b.za.size == 0:
@@ -326,16 +330,11 @@ def code_scatter(frames: Sequence[np.ndarray], times: Sequence[float] | np.ndarr
         num = np.bincount(b.za, b.count * r2, LEVELS) + np.bincount(b.zb, b.count * r2, LEVELS)
         den = np.bincount(b.za, b.count, LEVELS) + np.bincount(b.zb, b.count, LEVELS)
         seen = den > 0
-        ms = np.interp(codes, np.flatnonzero(seen), num[seen] / den[seen])
-        rms[:, c] = np.sqrt(np.maximum(ms / 2.0, 1e-8))
+        rms[:, c] = per_sample(num / np.maximum(den, 1.0), seen)
         half = _quantile_per_code(np.concatenate([b.za, b.zb]), np.abs(np.concatenate([r, r])),
                                   np.concatenate([b.count, b.count]), den, SCATTER_QUANTILE)
         enough = den >= SCATTER_MIN_COUNT
-        if enough.sum() < 2:  # a thumbnail: every code any pixel shows
-            enough = seen
-        q2 = half**2
-        ms = np.interp(codes, np.flatnonzero(enough), q2[enough]) if enough.sum() > 1 else np.full(LEVELS, q2[enough][0])
-        core[:, c] = np.sqrt(np.maximum(ms / 2.0, 1e-8))
+        core[:, c] = per_sample(half**2, enough if enough.sum() >= 2 else seen)  # a thumbnail: what it shows
     return rms, core
 
 
@@ -359,7 +358,9 @@ class StackFit:
         return self.exposures_s / self.labels_s
 
 
-def _check_bracket(frames: Sequence[np.ndarray], times: Sequence[float], smoothness: float) -> np.ndarray:
+def _check_bracket(frames: Sequence[np.ndarray], times: Sequence[float]) -> np.ndarray:
+    """The labels as float64 after every check a response estimate (either method) needs: two
+    frames or more, one positive time each, not all equal, and frames that brighten with them."""
     if len(frames) < 2:
         raise InputError("estimating a response needs at least 2 exposures (or give --response)",
                          param="--response")
@@ -368,8 +369,6 @@ def _check_bracket(frames: Sequence[np.ndarray], times: Sequence[float], smoothn
         raise InputError("exposure times must be positive, one per frame", param="times")
     if np.unique(t).size < 2:
         raise InputError("the exposure times of a bracket must differ", param="times")
-    if not np.isfinite(smoothness) or smoothness <= 0:
-        raise InputError(f"smoothness {smoothness!r} must be positive", param="--smoothness")
     check_brightens(frames, t)
     return t
 
@@ -417,7 +416,9 @@ def fit_stack(frames: Sequence[np.ndarray], times: Sequence[float], *, smoothnes
     :data:`MAX_EXPOSURE_CORRECTION` means the labels and the pictures do not belong together,
     or the scene changed: then every label is kept and the response solved with them.
     """
-    t = _check_bracket(frames, times, smoothness)
+    if not np.isfinite(smoothness) or smoothness <= 0:
+        raise InputError(f"smoothness {smoothness!r} must be positive", param="--smoothness")
+    t = _check_bracket(frames, times)
     zs = []
     for c in range(3):
         stack = np.stack([np.asarray(f)[..., c] for f in frames])
@@ -456,7 +457,7 @@ def response_from_stack(images: Sequence[np.ndarray], exposures_s: Sequence[floa
     measured ``log_sigma``.
 
     Raises InputError (a ValueError) for fewer than 2 frames, mismatched sizes, non-uint8
-    frames or a failed solve.
+    frames, frames that do not brighten with their times (either method) or a failed solve.
     """
     if len(images) < 2 or len(images) != len(exposures_s):
         raise InputError("need at least 2 frames and one exposure time per frame", param="times")
@@ -468,9 +469,7 @@ def response_from_stack(images: Sequence[np.ndarray], exposures_s: Sequence[floa
     if method == "robertson":
         import cv2
 
-        times = np.asarray(exposures_s, dtype=np.float32)
-        if not np.all(np.isfinite(times) & (times > 0)):
-            raise InputError("exposure times must be positive", param="times")
+        times = _check_bracket(imgs, exposures_s).astype(np.float32)  # the checks the Debevec fit makes
         table = cv2.createCalibrateRobertson().process(imgs, times).reshape(LEVELS, 3)
         resp = Response("table", 8, repair_inverse(table), method).normalised()
         return Response(resp.model, resp.bits, resp.inverse, resp.method,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.response import fit_stack, pair_bins, solve_debevec
+from calibration.response import fit_stack, pair_bins, response_from_stack, solve_debevec
 from device.core.errors import InputError
 
 
@@ -106,6 +106,8 @@ def test_a_stack_that_does_not_brighten_with_its_labels_is_refused() -> None:
         with pytest.raises(InputError, match="do not get brighter with exposure time") as e:
             fit_stack(stack, true)
         assert e.value.param == "times"
+        with pytest.raises(InputError, match="do not get brighter with exposure time"):  # Robertson too
+            response_from_stack(stack, true, method="robertson")
     fit_stack(frames, true)  # the real bracket passes
 
 

@@ -22,10 +22,10 @@ sigma(z_i)^2)``, with ``X`` the pixel's radiance, the same for all its samples. 
 likelihood estimate is the precision-weighted mean of the logarithms,
 ``ln X = sum_i w_i ln X_i / sum_i w_i`` with ``w_i = h(z_i) / sigma(z_i)^2`` (Debevec & Malik's
 eq. 6 is this log mean, with their hat as the weights), and that is what the merge computes for
-such a response. Weighting
-each sample by the variance of its *own* value (``1 / (X_i sigma)^2``) favoured the samples that
-came out low: the image came out ``1.5 sigma^2`` low, the more so at the codes that scatter more,
-and on a phone's stack (sigma ~0.3) it correlated 0.974 with OpenCV's merge instead of 0.995.
+such a response. Weighting each sample by the variance of its *own* value (``1 / (X_i sigma)^2``)
+favoured the samples that came out low: the image came out ``1.5 sigma^2`` low, the more so at
+the codes that scatter more, and on a phone's stack (sigma ~0.3) it correlated 0.974 with
+OpenCV's merge instead of 0.995.
 On real photographs that scatter is heavy-tailed (edges, sub-pixel misregistration, things that
 moved), so the weights take the typical sample's spread (``Response.log_sigma_core``, the 68.3%
 half-width) while the deghosting's test, which is about the tails, keeps the root mean square
