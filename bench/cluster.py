@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.relight import _scene_file
+from lightprobe.bench.relight_scenes import scene_file
 
 
 def _noop(x: int) -> int:
@@ -34,14 +34,14 @@ def _noop(x: int) -> int:
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     from distributed import wait
 
-    from hostlink.relight import precompute as pre
-    from hostlink.relight.cluster import connect
-    from hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.cuts import precompute as pre
+    from lightprobe.hostlink.relight.cuts.cluster import connect
+    from lightprobe.hostlink.relight.scene import load_scene
 
     res, spheres, grid = (25, 4, 8) if quick else (61, 16, 16)
     work = Path(tempfile.mkdtemp(prefix="lightprobe-bench-cluster-"))
     try:
-        scene = load_scene(_scene_file(work, True, res))
+        scene = load_scene(scene_file(work, True, res))
         job = pre.make_job(scene, cfg=(spheres, grid, 1.2, 10.0))
         chunks = job.chunks()
 

@@ -1,7 +1,7 @@
 """``lightprobe bench fleet [--quick]``: 50 lightweight simulated probes at 10 Hz through one local
 mosquitto, one host merging them all (``MergedStream("mqtt://...")``).
 
-Each simulated probe is the service's own :class:`device.service.mqtt.MqttPublisher` (same
+Each simulated probe is the service's own :class:`lightprobe.device.service.mqtt.MqttPublisher` (same
 topics, will, rate limits and payloads) over a synthetic source: a light set of ``lights`` lights
 whose directions turn slowly, stamped with the wall clock when it is published to the probe's
 hub. The probes run in a child process (one asyncio loop for all 50), the host in this one, so
@@ -28,17 +28,17 @@ from typing import Any
 
 import numpy as np
 
-from device.core.lightset import LightSet
+from lightprobe.core.lightset import LightSet
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 class SyntheticProbe:
-    """A probe without a camera: a :class:`~device.service.runner.FrameHub` fed at ``rate`` Hz
-    with a small light set. Implements :class:`device.service.mqtt.Source`."""
+    """A probe without a camera: a :class:`~lightprobe.device.service.runner.FrameHub` fed at ``rate`` Hz
+    with a small light set. Implements :class:`lightprobe.device.service.mqtt.Source`."""
 
     def __init__(self, probe_id: str, rate: float = 10.0, lights: int = 16, seed: int = 0) -> None:
-        from device.service.runner import FrameHub
+        from lightprobe.device.service.runner import FrameHub
 
         self.probe_id, self.rate, self.n = probe_id, float(rate), int(lights)
         self.hub = FrameHub()
@@ -69,7 +69,7 @@ class SyntheticProbe:
             k += 1
             await asyncio.sleep(max(0.0, t0 + k * period - time.monotonic()))
 
-    # ---- device.service.mqtt.Source -----------------------------------------------------------
+    # ---- lightprobe.device.service.mqtt.Source -----------------------------------------------------------
     def status(self) -> dict[str, Any]:
         return {"version": 1, "probe": self.probe_id, "state": "online", "name": f"sim {self.probe_id}",
                 "model": "lightprobe-fleet-sim", "sw_version": "0", "sampler": "pharr", "health": "ok",
@@ -89,8 +89,9 @@ async def run_fleet(url: str, count: int, rate: float, seconds: float, lights: i
                     discovery: bool = False, keepalive: int = 10) -> dict[str, Any]:
     """Run ``count`` synthetic probes publishing to ``url`` for ``seconds``; then stop them
     cleanly (each publishes ``offline``)."""
-    from device.core.broker import parse_broker_url
-    from device.service.mqtt import MqttPublisher, MqttSettings
+    from lightprobe.core.mqtt_topics import parse_broker_url
+    from lightprobe.device.service.mqtt import MqttPublisher
+    from lightprobe.device.service.mqtt_settings import MqttSettings
 
     settings = MqttSettings(parse_broker_url(url), lights_rate=rate, sh_rate=0.0, sensors_rate=0.2,
                             discovery=discovery, keepalive=keepalive)
@@ -107,7 +108,7 @@ async def run_fleet(url: str, count: int, rate: float, seconds: float, lights: i
             "frames": sum(p.frame for p in probes)}
 
 
-def _fleet_main() -> None:  # the child process: python -m bench.fleet URL COUNT RATE SECONDS [KEEPALIVE]
+def _fleet_main() -> None:  # the child process: python -m lightprobe.bench.fleet URL COUNT RATE SECONDS [KEEPALIVE]
     url, count, rate, seconds = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
     keepalive = int(sys.argv[5]) if len(sys.argv) > 5 else 10
     t0 = time.process_time()
@@ -175,7 +176,7 @@ class Mosquitto:
 
 async def measure(url: str, count: int, rate: float, seconds: float) -> dict[str, Any]:
     """Start the fleet in a child process and merge it here; latency and CPU figures."""
-    from hostlink.stream import MergedStream
+    from lightprobe.hostlink.stream import MergedStream
 
     lat: list[float] = []
     merges = 0
@@ -184,7 +185,7 @@ async def measure(url: str, count: int, rate: float, seconds: float) -> dict[str
     cpu0 = time.process_time()
     async with MergedStream(url, count=64, method="index", stale_after=2.0) as ms:
         child = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "bench.fleet", url, str(count), str(rate), str(seconds),
+            sys.executable, "-m", "lightprobe.bench.fleet", url, str(count), str(rate), str(seconds),
             stdout=asyncio.subprocess.PIPE, cwd=str(ROOT))
         t_start = time.monotonic()
         cpu_start = time.process_time()
@@ -278,7 +279,7 @@ def measure_start(url: str, runs: int = 3) -> dict[str, Any]:
             sub.lines.clear()  # retained messages of the previous run
             wall_minus_mono = time.time() - time.monotonic()
             t0 = time.monotonic()
-            p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--port", "0",
+            p = subprocess.Popen([sys.executable, "-m", "lightprobe.cli", "serve", "--camera", "sim", "--port", "0",
                                   "--state-dir", str(state), "--mqtt", url, "--log-format", "json"],
                                  cwd=str(ROOT), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             try:

@@ -38,7 +38,7 @@ def _fib(n: int) -> np.ndarray:
 
 
 def _exact(m: np.ndarray, n: np.ndarray) -> np.ndarray:
-    from device.core.sphere import equirect_directions, equirect_row_solid_angle
+    from lightprobe.core.sphere import equirect_directions, equirect_row_solid_angle
 
     h = m.shape[0]
     d = equirect_directions(h).reshape(-1, 3)
@@ -52,9 +52,9 @@ def _nrms(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _maps(shared: Path) -> dict[str, np.ndarray]:
-    from device.core.imageio import read_hdr_image
-    from device.core.sphere import coarse_equirect
-    from sim.scenarios import load_scene
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.core.sphere import coarse_equirect
+    from lightprobe.sim.scenarios import load_scene
 
     out = {}
     for name in MAPS:
@@ -75,10 +75,10 @@ def _timed(fn: Any, n: int) -> dict[str, float]:
 
 
 def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
-    from device.core.environment import EnvironmentEstimator
-    from device.core.sh import irradiance
-    from device.formats.cubemap import CubemapFilter, face_directions
-    from sim.scenarios import default_shared_data
+    from lightprobe.core.sh import irradiance
+    from lightprobe.device.formats.cubemap import CubemapFilter, face_directions
+    from lightprobe.device.formats.sh_primary import EnvironmentEstimator
+    from lightprobe.sim.scenarios import default_shared_data
 
     shared = default_shared_data()
     maps = _maps(shared)
@@ -139,11 +139,15 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
             cubes.append({"map": name, "hemisphere": hemi, **t, "mip_max_rel_error": errs})
 
     # spherical Gaussians (#17): the fit on every map, sphere and probe hemisphere
-    from device.core.lightset import LightSet
-    from device.core.sg import SGLighting
-    from device.core.sgfit import fit_sg
-    from device.core.sphere import equirect_directions, equirect_integral, equirect_row_solid_angle
-    from device.sampling.metrics import ErrorReference
+    from lightprobe.core.lightset import LightSet
+    from lightprobe.core.sg import SGLighting
+    from lightprobe.core.sphere import (
+        equirect_directions,
+        equirect_integral,
+        equirect_row_solid_angle,
+    )
+    from lightprobe.device.formats.sgfit import fit_sg
+    from lightprobe.device.sampling.metrics import ErrorReference
 
     def sg_lights(sg: SGLighting, h: int = 256) -> LightSet:
         peak = np.array([k == "peak" for k in sg.kinds], bool)

@@ -1,14 +1,14 @@
-"""Fusion benchmark: speed and accuracy of :func:`device.hdr.fuse` against OpenCV, on a synthetic
+"""Fusion benchmark: speed and accuracy of :func:`lightprobe.device.hdr.fuse` against OpenCV, on a synthetic
 stack, on every real stack in ``../shared/data/exposure_stacks`` and on the simulator's truth.
 
-``run(out_dir, quick)`` follows the ``lightprobe bench NAME`` contract (``bench/cli.py``): it writes
+``run(out_dir, quick)`` follows the ``lightprobe bench NAME`` contract (``cli/bench.py``): it writes
 ``hdr_fusion.json`` and ``hdr_fusion.png`` into ``out_dir`` and returns ``{"summary": {...}, ...}``.
 
 Real stacks (:func:`score_stack`, also what ``tests/test_hdr_real_stacks.py`` asserts): the
 response is estimated from the whole stack by each method (ours: ``lightprobe fuse``'s own;
 OpenCV's ``CalibrateDebevec`` + ``MergeDebevec`` and ``CalibrateRobertson`` +
 ``MergeRobertson``), then the even and the odd exposures are fused apart and compared
-(:func:`device.hdr.quality.subset_consistency`: no ground truth needed); the whole stack's
+(:func:`lightprobe.device.hdr.quality.subset_consistency`: no ground truth needed); the whole stack's
 fusion is compared with OpenCV Debevec's (log-luminance correlation, dynamic range). Frames wider
 than ``max_width`` are downscaled (area average) first, as the tests do.
 
@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from device.core.calibration import Response
+from lightprobe.core.calibration import Response
 
 __all__ = ["run", "synthetic_stack"]
 
@@ -89,7 +89,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     import matplotlib.pyplot as plt
     import numba
 
-    from device.hdr.fusion import fuse
+    from lightprobe.device.hdr.fusion import fuse
 
     n = 20 if quick else 100
     x, frames, resp = synthetic_stack()
@@ -116,8 +116,8 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     }
     import asyncio
 
-    from drivers.base import PixelFormat
-    from sim.scenarios import default_shared_data
+    from lightprobe.drivers.base import PixelFormat
+    from lightprobe.sim.scenarios import default_shared_data
 
     shared = default_shared_data()
     stacks = run_stacks(shared, fit_runs=3)
@@ -162,7 +162,7 @@ def load_stack(shared_data: Path, name: str, max_width: int = 800) -> tuple[list
     """RGB uint8 frames (area-downscaled to ``max_width``) and exposure times of a shared stack."""
     import cv2
 
-    from device.hdr.cli import read_stack, read_times_file
+    from lightprobe.device.hdr.stack import read_stack, read_times_file
 
     d = Path(shared_data) / "exposure_stacks" / name
     images = sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff"))
@@ -181,6 +181,7 @@ def _opencv(frames: list[np.ndarray], times: list[float], method: str) -> Any:
 
     bgr = [np.ascontiguousarray(f[..., ::-1]) for f in frames]
     t = np.asarray(times, np.float32)
+    merge: Any
     if method == "debevec":
         crf, merge = cv2.createCalibrateDebevec().process(bgr, t), cv2.createMergeDebevec()
     else:
@@ -195,10 +196,10 @@ def _opencv(frames: list[np.ndarray], times: list[float], method: str) -> Any:
 
 def _ours(frames: list[np.ndarray], fit: Any, deghost: bool) -> tuple[Any, list[float]]:
     """Our merge function of index lists, with the stack's own response and effective exposures
-    (``fit``: :func:`device.hdr.cli.fit_response`, as ``lightprobe fuse`` has them), and those
+    (``fit``: :func:`lightprobe.device.hdr.stack.fit_response`, as ``lightprobe fuse`` has them), and those
     exposures' corrections of the labels."""
-    from device.hdr.cli import fusion_settings
-    from device.hdr.fusion import fuse
+    from lightprobe.device.hdr.fusion import fuse
+    from lightprobe.device.hdr.stack import fusion_settings
 
     response, exposures = fit.response, list(fit.exposures_s)
     settings = fusion_settings(response, deghost=deghost)
@@ -215,8 +216,8 @@ def score_stack(frames: list[np.ndarray], times: list[float], fit_runs: int = 1)
     with ``--no-deghost``, the exposure corrections of the labels (``lightprobe_labels``: ours
     with the labels taken as exact) and ``response_fit_s``, the median of ``fit_runs`` timed
     fits of the stack's response (the first one is the fit scored)."""
-    from device.hdr.cli import fit_response
-    from device.hdr.quality import dynamic_range, log_correlation, subset_consistency
+    from lightprobe.device.hdr.quality import dynamic_range, log_correlation, subset_consistency
+    from lightprobe.device.hdr.stack import fit_response
 
     t0 = time.perf_counter()
     fit = fit_response(frames, times)  # one fit for the deghosting on and off
@@ -263,9 +264,14 @@ async def simulator_accuracy(scene: str, fmt: Any, shared_data: Path | None = No
     bracket, fused with the truth response; fused x photometric scale / vignetting against the
     noise-free sensor-plane radiance over the clean field of view, on pixels not saturated in the
     shortest exposure."""
-    from device.burst import BracketPlanner, capture_burst, exposure_rates, field_of_view_mask
-    from device.hdr import fuse_frames
-    from sim.camera import SimCamera
+    from lightprobe.device.burst import (
+        BracketPlanner,
+        capture_burst,
+        exposure_rates,
+        field_of_view_mask,
+    )
+    from lightprobe.device.hdr import fuse_frames
+    from lightprobe.sim.camera import SimCamera
 
     cam = SimCamera(scene, seed=seed, shared_data=shared_data)
     async with cam:
@@ -306,10 +312,10 @@ async def simulator_accuracy(scene: str, fmt: Any, shared_data: Path | None = No
 
 def run_stacks(shared_data: Path, fit_runs: int = 1) -> dict[str, Any]:
     """:func:`score_stack` of every stack in ``shared_data/exposure_stacks`` (with a times file),
-    as it is and, where :func:`device.hdr.align.stack_shifts` finds it misregistered, registered
+    as it is and, where :func:`lightprobe.device.hdr.align.stack_shifts` finds it misregistered, registered
     (``"registered"``: every method fuses the same registered frames); ``fit_runs`` timed fits
     of each (the bench's median of 3, the tests' one)."""
-    from device.hdr.align import align_stack
+    from lightprobe.device.hdr.align import align_stack
 
     root = Path(shared_data) / "exposure_stacks"
     names = sorted(d.name for d in root.iterdir() if (d / "exposure_times_seconds.txt").is_file())

@@ -3,17 +3,17 @@
 Two parts.
 
 1. **Sensor time** (deterministic, :func:`measure`): the pipeline as the service drives it
-   (``device.pipeline.Pipeline.step``, 256 Q2-Tree lights) on the simulator at its 30 fps mode,
+   (``lightprobe.device.pipeline.Pipeline.step``, 256 Q2-Tree lights) on the simulator at its 30 fps mode,
    not paced, per scene (the six shared maps) and scenario (``flashlight``, ``switch``,
    ``daylight``): light sets per sensor second after the bracket settles; the published lights'
    diffuse irradiance and glossy errors against the simulator's true map *at that frame's time*
-   (relative RMSE over 128 upward Fibonacci normals, :mod:`device.sampling.metrics`, the samplers'
+   (relative RMSE over 128 upward Fibonacci normals, :mod:`lightprobe.device.sampling.metrics`, the samplers'
    metrics); switch latency in frames (the first frame whose published energy is within 5% of the
    new steady state, counted from the first frame that shows the switch); flashlight lag in frames
    (the frame ``k`` back whose true flashlight direction is nearest the brightest published
    light's); CPU ms per frame, split into the simulator's rendering and the pipeline.
    ``tests/test_pipeline_accuracy.py`` asserts the issue's targets on these figures.
-2. **Wall time** on this machine (:mod:`bench.service_startup` does the start-up part): the real
+2. **Wall time** on this machine (:mod:`lightprobe.bench.service_startup` does the start-up part): the real
    ``lightprobe serve`` (sim camera paced at 30 fps, and ``--camera v4l2-fake``) as a user starts
    it: light sets per second on the WebSocket, first lights after exec from a fresh state dir and
    a warm one, the first ``GET /api/v1/q2tree``, RSS after a minute (``--quick``: 15 s).
@@ -21,7 +21,7 @@ Two parts.
    fusion + projection + merge (``RollingMerge.update``, the whole per-frame HDR work) and the
    rest of the per-frame processing before sampling (``Pipeline._process`` with the sampler
    stubbed), each against one ``cv2.remap`` of a VGA float32 RGB frame in the same run, under
-   the service's allocator settings (:func:`device.core.memory.tune_allocator`: arrays of 256 kB
+   the service's allocator settings (:func:`lightprobe.device.allocator.tune_allocator`: arrays of 256 kB
    and more are mapped per allocation, so a per-frame array that is not reused pays its page
    faults here as it does in the service).
 
@@ -46,7 +46,7 @@ SCENARIOS = ["flashlight", "switch", "daylight"]
 
 
 def _reference(truth: np.ndarray, normals: np.ndarray) -> Any:
-    from device.sampling.metrics import ErrorReference
+    from lightprobe.device.sampling.metrics import ErrorReference
 
     up = truth.astype(np.float32).copy()
     up[up.shape[0] // 2:] = 0.0  # the published lights stand for the upper hemisphere
@@ -55,8 +55,8 @@ def _reference(truth: np.ndarray, normals: np.ndarray) -> Any:
 
 async def _frames(scene: str, frames: int, seed: int, light_count: int, shared_data: str | None
                   ) -> tuple[Any, list[Any]]:
-    from device.pipeline import Pipeline, PipelineConfig
-    from sim.camera import SimCamera
+    from lightprobe.device.pipeline import Pipeline, PipelineConfig
+    from lightprobe.sim.camera import SimCamera
 
     cam = SimCamera(scene, seed=seed, read_ahead=False, shared_data=shared_data)
     pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(sampler="q2tree", light_count=light_count))
@@ -71,7 +71,7 @@ async def _frames(scene: str, frames: int, seed: int, light_count: int, shared_d
 def _switch_lags(cam: Any, rs: list[Any], settle: int) -> list[int | None]:
     """Frames from the first frame that shows a switch to the first published energy within 5% of
     the new steady state (the median of frames 8..20 after it, while the lamp stays as it is)."""
-    from device.core.sphere import luminance
+    from lightprobe.core.sphere import luminance
 
     light = cam.scene.lights[0]
     on = [light.intensity(r.sensor_time_s) > 0 for r in rs]
@@ -94,7 +94,7 @@ def _flashlight_lags(cam: Any, rs: list[Any], settle: int, fps: float) -> list[i
     flashlight: the brightest light and the lights within 8 degrees of it, energy-weighted (a
     tree sampler splits the 6-degree disc into several leaves, and which of them is brightest
     is noise)."""
-    from device.core.sphere import luminance
+    from lightprobe.core.sphere import luminance
 
     light = cam.scene.lights[0]
     lags: list[int | None] = []
@@ -113,7 +113,7 @@ def _flashlight_lags(cam: Any, rs: list[Any], settle: int, fps: float) -> list[i
 def measure(scene: str, frames: int = 160, settle: int = 40, *, seed: int = 7, light_count: int = 256,
             every: int = 1, shared_data: str | None = None) -> dict[str, Any]:
     """Sensor-time figures for one scene or scenario (module docstring, part 1)."""
-    from device.sampling.metrics import fibonacci_normals
+    from lightprobe.device.sampling.metrics import fibonacci_normals
 
     cam, rs = asyncio.run(_frames(scene, frames, seed, light_count, shared_data))
     fps = float(cam.mode.max_fps)
@@ -186,11 +186,11 @@ def per_frame_processing(n: int = 100, scene: str = "rooitou_park") -> dict[str,
 
     import cv2
 
-    from device.core.memory import tune_allocator
+    from lightprobe.device.allocator import tune_allocator
 
     tune_allocator()  # as `lightprobe serve` runs
-    from device.pipeline import Pipeline, PipelineConfig
-    from sim.camera import SimCamera
+    from lightprobe.device.pipeline import Pipeline, PipelineConfig
+    from lightprobe.sim.camera import SimCamera
 
     cam = SimCamera(scene, seed=3, read_ahead=False)
     pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(sampler="q2tree", light_count=256))
@@ -236,7 +236,7 @@ def per_frame_processing(n: int = 100, scene: str = "rooitou_park") -> dict[str,
     held: list[Any] = []
 
     def whole() -> None:
-        pipe._last_sampled = None  # never the skip path: the whole per-frame work
+        pipe._change.reset()  # never the skip path: the whole per-frame work
         held.append(process(frame, t, g))  # results outlive their frame, as the service's do
         del held[:-3]
 
@@ -260,7 +260,7 @@ def per_frame_processing(n: int = 100, scene: str = "rooitou_park") -> dict[str,
 
 
 def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
-    from bench.service_startup import live_service_figures
+    from lightprobe.bench.service_startup import live_service_figures
 
     frames = 120 if quick else 300
     results = [measure(s, frames=frames) for s in SCENES + SCENARIOS]

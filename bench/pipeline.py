@@ -4,7 +4,7 @@
    simulator, then fusion + every projection (polar, equirect, HEALPix) timed over 100 runs
    (median), next to one ``cv2.remap`` of a VGA float32 RGB frame measured in the same run
    ("remap-equivalents").
-2. Whole pipeline on the simulator (``device.pipeline.Pipeline``): median time per stage
+2. Whole pipeline on the simulator (``lightprobe.device.pipeline.Pipeline``): median time per stage
    (capture includes the simulator's own rendering, which real hardware does not cost), the
    exposures the planner chose, frames skipped as unchanged.
 3. Accuracy against ground truth per scene: fused x scale / vignetting vs the simulator's
@@ -40,13 +40,20 @@ def _median_ms(fn: Any, n: int) -> float:
 
 
 async def _capture_stack(scene: str, seed: int = 3) -> tuple[Any, Any, list[Any], list[float]]:
-    from device.burst import BracketPlanner, capture_burst, exposure_rates, field_of_view_mask
-    from device.hdr.fusion import fuse_frames
-    from sim.camera import SimCamera
+    from lightprobe.device.burst import (
+        BracketPlanner,
+        capture_burst,
+        exposure_rates,
+        field_of_view_mask,
+    )
+    from lightprobe.device.hdr.fusion import fuse_frames
+    from lightprobe.sim.camera import SimCamera
 
     cam = SimCamera(scene, seed=seed)
     async with cam:
         cal = cam.truth_calibration()
+        assert cal.fisheye is not None
+        assert cal.response is not None
         planner = BracketPlanner(cam.capabilities.exposure_range)
         sweep = await capture_burst(cam, planner.plan(None), timeout=60)
         first = fuse_frames(sweep, cal.response)
@@ -60,8 +67,8 @@ async def _capture_stack(scene: str, seed: int = 3) -> tuple[Any, Any, list[Any]
 def _per_frame(n: int) -> dict[str, Any]:
     import cv2
 
-    from device.hdr.fusion import fuse_frames
-    from device.projection import Projector
+    from lightprobe.device.hdr.fusion import fuse_frames
+    from lightprobe.device.projection import Projector
 
     _cam, cal, frames, _ = asyncio.run(_capture_stack("rooitou_park"))
     # Exactly three exposures, as the target states (the planner may choose more or fewer)
@@ -84,9 +91,9 @@ def _per_frame(n: int) -> dict[str, Any]:
 
 
 def _accuracy(scene: str) -> dict[str, Any]:
-    from device.core.sphere import equirect_row_solid_angle
-    from device.hdr.fusion import fuse_frames
-    from device.projection import Projector
+    from lightprobe.core.sphere import equirect_row_solid_angle
+    from lightprobe.device.hdr.fusion import fuse_frames
+    from lightprobe.device.projection import Projector
 
     cam, cal, frames, exposures = asyncio.run(_capture_stack(scene))
     res = fuse_frames(frames, cal.response)
@@ -94,7 +101,7 @@ def _accuracy(scene: str) -> dict[str, Any]:
     h, w = truth.shape[:2]
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     est = res.radiance.astype(np.float64) * cal.photometric.scale / cal.vignetting.factor(u, v)[..., None]
-    from device.burst import field_of_view_mask
+    from lightprobe.device.burst import field_of_view_mask
 
     fov = field_of_view_mask(cal.fisheye)
     shortest = frames[int(np.argmin([f.meta.exposure_s for f in frames]))]
@@ -108,7 +115,7 @@ def _accuracy(scene: str) -> dict[str, Any]:
     true_upper = float(np.tensordot(omega, true_eq[: he // 2].astype(np.float64).sum(axis=1), axes=(0, 0)).sum())
     omega_p = equirect_row_solid_angle(maps.polar.shape[0] * 2, maps.polar.shape[1])[: maps.polar.shape[0]]
     polar_e = float(np.tensordot(omega_p, maps.polar.astype(np.float64).sum(axis=1), axes=(0, 0)).sum())
-    from device.core.healpix import pix2vec_nest, pixel_solid_angle
+    from lightprobe.core.healpix import pix2vec_nest, pixel_solid_angle
 
     # Upper hemisphere: pixels centred on the equator ring are symmetric about it (half above)
     y = pix2vec_nest(maps.nside, np.arange(maps.healpix.shape[0]))[:, 1]
@@ -121,8 +128,8 @@ def _accuracy(scene: str) -> dict[str, Any]:
 
 
 async def _pipeline_run(scene: str, frames: int, sampler: str) -> dict[str, Any]:
-    from device.pipeline import Pipeline, PipelineConfig
-    from sim.camera import SimCamera
+    from lightprobe.device.pipeline import Pipeline, PipelineConfig
+    from lightprobe.sim.camera import SimCamera
 
     cam = SimCamera(scene)
     pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(sampler=sampler, light_count=256))

@@ -1,5 +1,5 @@
 """``lightprobe bench relight [--quick]``: cut relighting against a brute-force reference, then the SG
-method (``bench.relight_sg``) on the same scenes and ``relight_pareto.png``, both methods' error
+method (``lightprobe.bench.relight_sg``) on the same scenes and ``relight_pareto.png``, both methods' error
 against frame time.
 
 Scenes: ``../shared/data/meshes/spot.obj`` on a ground plane.
@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 
-from bench.relight_scenes import MAPS, SHARED, rel_rms, scene_file, timeit
+from lightprobe.bench.relight_scenes import MAPS, SHARED, rel_rms, scene_file, timeit
 
 
 def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
-    from hostlink.relight.cuts import height_coded_nbytes, index_coded_nbytes
+    from lightprobe.hostlink.relight.cuts.coding import height_coded_nbytes, index_coded_nbytes
 
     lens = np.diff(offsets)
     uniq, counts = np.unique(lens, return_counts=True)
@@ -44,11 +44,11 @@ def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
 
 
 def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
-    from device.core.sphere import luminance
-    from hostlink.relight.precompute import precompute
-    from hostlink.relight.reference import reference_radiance
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import load_scene
+    from lightprobe.core.sphere import luminance
+    from lightprobe.hostlink.relight.cuts.precompute import precompute
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import load_scene
 
     scene = load_scene(scene_file(d, False, 24))
     taus = [1e-4, 2e-5] if quick else [1e-4, 5e-5, 2e-5, 1e-5, 5e-6]
@@ -85,8 +85,8 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
 def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # type: ignore[no-untyped-def]
             groups: dict[str, np.ndarray]) -> dict[str, Any]:
     """Relative RMS luminance error against brute force per map, overall and per vertex group."""
-    from device.core.sphere import luminance
-    from hostlink.relight.reference import reference_radiance
+    from lightprobe.core.sphere import luminance
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
     ref = reference_radiance(rl, leaf_lights, eye, vidx)
     out: dict[str, Any] = {}
@@ -102,8 +102,8 @@ def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # t
 
 def _stages(rl, eye: np.ndarray, leaf: np.ndarray, reps: int) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
     """Per-stage times on all vertices: light tables, static (SVC) shading, occlusion, raster."""
-    from hostlink.relight.lighting import light_tables
-    from hostlink.relight.raster import rasterize
+    from lightprobe.hostlink.relight.cuts.lighting import light_tables
+    from lightprobe.hostlink.relight.raster import rasterize
 
     allv = np.arange(len(rl.pre.vertices))
     pos = rl.positions()
@@ -119,8 +119,8 @@ def _stages(rl, eye: np.ndarray, leaf: np.ndarray, reps: int) -> dict[str, dict[
 
 def _frames(rls, rld, maps: list[np.ndarray], reps: int) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
     """Frame times (render() at 640 x 480, shading only stale visible vertices)."""
-    from hostlink.relight.raster import rasterize
-    from hostlink.relight.scene import Camera, Material
+    from lightprobe.hostlink.relight.raster import rasterize
+    from lightprobe.hostlink.relight.scene import Camera, Material
 
     cam = rls.scene.camera
     raster = rasterize(cam, rls.pre.vertices, rls.pre.faces, rays=False)
@@ -142,14 +142,14 @@ def _frames(rls, rld, maps: list[np.ndarray], reps: int) -> dict[str, dict[str, 
     ms["rotating_frame"] = timeit(lambda: (rld.move("spot", [0.3, 0, 0], [0, next(turn), 0]), rld.render()), reps)
     ms["moving_frame_with_light_change"] = timeit(lambda: (rld.move("spot", [next(step), 0, 0]),
                                                             rld.set_equirect(maps[2]), rld.render()), reps)
-    rld.move("spot", [0, 0, 0])
+    rld.move("spot", np.zeros(3))
     return ms
 
 
 def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]) -> dict[str, Any]:
-    from hostlink.relight.precompute import precompute
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.cuts.precompute import precompute
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import load_scene
 
     spheres, grid = (8, 8) if quick else (32, 32)
     reps = 3 if quick else 9
@@ -182,13 +182,13 @@ def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]
     spot = st.object_id[vidx] == 0
     out["static_error_vs_reference"] = _errors(rls, leaf_lights, eye, vidx, {"spot": spot, "ground": ~spot})
     for label, rot in (("moving", None), ("rotated", [0.0, 40.0, 0.0])):
-        rld.move("spot", [0.3, 0, 0], rot)
+        rld.move("spot", np.array([0.3, 0, 0]), None if rot is None else np.array(rot))
         dist = np.linalg.norm(rld.positions()[vidx] - rld._centers()[0], axis=1)
         inner = (dyn.object_id[vidx] == 1) & (dist < rld._radii[0, 0])
         out[f"{label}_error_vs_reference"] = _errors(
             rld, leaf_lights, eye, vidx, {"spot": spot, "ground_inside_inner_sphere": inner,
                                           "ground_outside_inner_sphere": (dyn.object_id[vidx] == 1) & ~inner})
-    rld.move("spot", [0, 0, 0])
+    rld.move("spot", np.zeros(3))
     return out
 
 
@@ -245,10 +245,10 @@ def _plots(out_dir: Path, acc: dict[str, Any], speed: dict[str, Any]) -> None:
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     import os
 
-    from device.core.imageio import read_hdr_image
-    from hostlink.relight.directions import cluster_compactness
-    from hostlink.relight.lighting import leaf_light_from_equirect
-    from hostlink.relight.precompute import default_cache_dir
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.hostlink.relight.cuts.directions import cluster_compactness
+    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
+    from lightprobe.hostlink.relight.cuts.precompute import default_cache_dir
 
     load_before = os.getloadavg()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -278,7 +278,7 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
         "bytes": speed["bytes"],
     }
     result = {"summary": summary, "accuracy": acc, "speed": speed, "compactness_deg_per_level": comp}
-    from bench import relight_sg
+    from lightprobe.bench import relight_sg
 
     sg = relight_sg.run(out_dir, quick)         # side by side: the SG method, no precompute
     summary["sg"] = sg["summary"]

@@ -1,4 +1,4 @@
-"""The scenes, maps and helpers the relighting benchmarks share (``bench.relight``, ``bench.relight_sg``)."""
+"""The scenes, maps and helpers the relighting benchmarks share (``lightprobe.bench.relight``, ``lightprobe.bench.relight_sg``)."""
 
 from __future__ import annotations
 

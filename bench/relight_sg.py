@@ -1,8 +1,8 @@
-"""``lightprobe bench relight_sg [--quick]``: SG relighting (hostlink.relight.sg) against the brute force,
+"""``lightprobe bench relight_sg [--quick]``: SG relighting (lightprobe.hostlink.relight.sg.relighter) against the brute force,
 and frame times with no precompute; ``lightprobe bench relight`` runs it too and draws the Pareto
 plot of both methods.
 
-* Accuracy: the scene of ``bench.relight`` (spot.obj on a 25 x 25 ground, 3,555 vertices), each
+* Accuracy: the scene of ``lightprobe.bench.relight`` (spot.obj on a 25 x 25 ground, 3,555 vertices), each
   shared map fitted to SG lobes as the probe does (``fit_sg``), the cow Lambert or Phong (e = 20),
   visibility by rays or voxel cone tracing. Per-vertex relative RMS luminance error against the
   brute force of the *true* map (2^15 directions, every ray cast), every 5th vertex. A deforming
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.relight_scenes import MAPS, SHARED, rel_rms, scene_file, timeit
+from lightprobe.bench.relight_scenes import MAPS, SHARED, rel_rms, scene_file, timeit
 
 
 def _deformed(rest: np.ndarray, f: int) -> np.ndarray:
@@ -36,11 +36,11 @@ def _deformed(rest: np.ndarray, f: int) -> np.ndarray:
 
 
 def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
-    from device.core.sphere import luminance
-    from hostlink.relight.precompute import scene_eps
-    from hostlink.relight.reference import brute_force_radiance
-    from hostlink.relight.scene import load_scene
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.core.sphere import luminance
+    from lightprobe.hostlink.relight.cuts.reference import brute_force_radiance
+    from lightprobe.hostlink.relight.rays import scene_eps
+    from lightprobe.hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     out: dict[str, Any] = {}
     for clay in ("lambert", "phong"):
@@ -85,8 +85,8 @@ def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
 
 
 def _speed(d: Path, lobes: list[Any], reps: int) -> dict[str, Any]:
-    from device.core.sg import SGLighting
-    from hostlink.relight.scene import load_scene
+    from lightprobe.core.sg import SGLighting
+    from lightprobe.hostlink.relight.scene import load_scene
 
     scene = load_scene(scene_file(d, False, 131, 640, 480))
     out: dict[str, Any] = {"vertices": sum(len(o.mesh.vertices) for o in scene.objects), "width": 640, "height": 480}
@@ -99,7 +99,7 @@ def _speed(d: Path, lobes: list[Any], reps: int) -> dict[str, Any]:
 
 
 def _frames(scene: Any, vis: str, sun: Any, dim: Any, other: Any, reps: int) -> dict[str, Any]:
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     rows: dict[str, Any] = {}
     t0, c0 = time.perf_counter(), time.process_time()
@@ -146,9 +146,9 @@ def _cold_first_frame(d: Path) -> dict[str, float]:
     import sys
 
     code = ("import time; t=time.perf_counter()\n"
-            "from pathlib import Path\nfrom device.core.imageio import read_hdr_image\n"
-            "from device.core.sgfit import fit_sg\nfrom hostlink.relight.scene import load_scene\n"
-            "from hostlink.relight.sg import SGRelighter\n"
+            "from pathlib import Path\nfrom lightprobe.core.imageio import read_hdr_image\n"
+            "from lightprobe.device.formats.sgfit import fit_sg\nfrom lightprobe.hostlink.relight.scene import load_scene\n"
+            "from lightprobe.hostlink.relight.sg.relighter import SGRelighter\n"
             f"sg = fit_sg(read_hdr_image(Path({str(SHARED / 'envmaps' / MAPS[1])!r})))\nt1=time.perf_counter()\n"
             f"rl = SGRelighter(load_scene(Path({str(scene_file(d, False, 131, 640, 480))!r})))\n"
             "rl.set_sg(sg); rl.render(); t2=time.perf_counter()\n"
@@ -194,10 +194,10 @@ def pareto_plot(out_dir: Path, sg: dict[str, Any], cuts: dict[str, Any] | None) 
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     import os
 
-    from device.core.imageio import read_hdr_image
-    from device.core.sgfit import fit_sg
-    from hostlink.relight.lighting import leaf_light_from_equirect
-    from hostlink.relight.precompute import default_cache_dir
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.device.formats.sgfit import fit_sg
+    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
+    from lightprobe.hostlink.relight.cuts.precompute import default_cache_dir
 
     out_dir.mkdir(parents=True, exist_ok=True)
     d = default_cache_dir() / "bench"

@@ -1,4 +1,4 @@
-"""``lightprobe bench room [--quick]``: frame times of the real-room relighting (hostlink.room,
+"""``lightprobe bench room [--quick]``: frame times of the real-room relighting (lightprobe.hostlink.relight.room,
 Loscos et al. 1999) at 640 x 480; its accuracy against Mitsuba 3 is asserted in
 ``tests/test_room.py`` (96 x 72 there: Mitsuba's path tracing is the cost).
 
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.relight_scenes import SHARED, timeit
+from lightprobe.bench.relight_scenes import SHARED, timeit
 
 ALBEDO = {"white": [0.7, 0.7, 0.7], "red": [0.63, 0.065, 0.05], "green": [0.14, 0.45, 0.09],
           "light": [0.78, 0.78, 0.78]}
@@ -93,8 +93,9 @@ def perturb_room(d: Path, out: Path, *, sigma: float = 0.004, shift: float = 0.0
 
 
 def _captures(d: Path, mats: dict[str, str]) -> None:
-    from device.core.imageio import write_exr
-    from hostlink.room.room import Light, Room
+    from lightprobe.core.imageio import write_exr
+    from lightprobe.hostlink.relight.room.io import Light
+    from lightprobe.hostlink.relight.room.room import Room
 
     (d / "captures").mkdir(exist_ok=True)
     room = Room(d)
@@ -111,8 +112,9 @@ def _captures(d: Path, mats: dict[str, str]) -> None:
 
 
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
-    from hostlink.relight.scene import load_obj, rotation_matrix
-    from hostlink.room.room import Light, Room, VirtualObject
+    from lightprobe.hostlink.relight.room.io import Light, VirtualObject
+    from lightprobe.hostlink.relight.room.room import Room
+    from lightprobe.hostlink.relight.scene import load_obj, rotation_matrix
 
     out_dir.mkdir(parents=True, exist_ok=True)
     reps = 3 if quick else 7

@@ -2,13 +2,13 @@
 
 Static part: on the six shared maps, for N in ``COUNTS``, each sampler's full-build time (fresh
 state), its update time (next frame of a slowly changing stream, state kept: what a stateful
-sampler saves) and its exact map-based errors (:mod:`device.sampling.metrics`: diffuse,
+sampler saves) and its exact map-based errors (:mod:`lightprobe.device.sampling.metrics`: diffuse,
 occluded, glossy). Pareto plot of error against build time (medians over the maps).
 
 Nikodym et al. 2013 table: build time on a 360 x 90 hemisphere map (the top half of a 360 x 180
 equirect, lower half black) at 200 / 1000 / 10000 lights, beside their N900 figures.
 
-Temporal part (``sim.scenarios``: flashlight, flicker, switch, swing at 30 fps): at 512 fixed
+Temporal part (``lightprobe.sim.scenarios``: flashlight, flicker, switch, swing at 30 fps): at 512 fixed
 Fibonacci normals, with the true irradiance computed exactly (base map once, plus each dynamic
 disc's rasterised pixels per frame),
 
@@ -40,11 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from device.core.imageio import read_hdr_image
-from device.core.lightset import LightSet
-from device.core.sphere import equirect_row_solid_angle, luminance
-from device.sampling.metrics import ErrorReference, fibonacci_normals, light_arrays
-from device.sampling.registry import available_samplers, make_sampler
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import equirect_row_solid_angle, luminance
+from lightprobe.device.sampling.metrics import ErrorReference, fibonacci_normals, light_arrays
+from lightprobe.device.sampling.registry import available_samplers, make_sampler
 
 __all__ = ["SceneTruth", "run", "temporal_metrics", "temporal_run"]
 
@@ -198,7 +198,7 @@ def _q2_times(sample: Callable[[Any, np.ndarray], Any], frames: list[np.ndarray]
     time (``stats["tree_s"]``, us) for both, and the update's stages (minima, us): pyramid
     (``pyramid_s``: compare with the previous frame, re-sum changed runs, coarse levels),
     tree, lights (``emit_s``) and the rest of the call (checks, Python)."""
-    from device.sampling.q2tree import Q2TreeSampler
+    from lightprobe.device.sampling.q2tree import Q2TreeSampler
 
     s = Q2TreeSampler()
     sample(s, frames[0])  # warm up (JIT, tables)
@@ -247,7 +247,7 @@ def incremental_bench(maps: dict[str, np.ndarray], counts: tuple[int, ...], fram
     (lower half black, ``sample``) and its NESTED nside-64 map (``sample_healpix``)."""
     import cv2
 
-    from device.core.healpix import equirect_to_healpix
+    from lightprobe.core.healpix import equirect_to_healpix
 
     rows = []
     for name, img in maps.items():
@@ -286,7 +286,7 @@ class SceneTruth:
     """
 
     def __init__(self, scene: Any, normals: np.ndarray) -> None:
-        from sim.scene import rasterize_disc
+        from lightprobe.sim.scene import rasterize_disc
 
         self._raster = rasterize_disc
         self.scene = scene
@@ -327,7 +327,7 @@ class _Scenario:
     """A scenario's scene and its per-frame truth (computed once, shared by every sampler)."""
 
     def __init__(self, name: str, frames: int, shared: Path | None = None, seed: int = 0) -> None:
-        from sim.scenarios import load_scene
+        from lightprobe.sim.scenarios import load_scene
 
         self.scene = load_scene(name, seed=seed, shared_data=shared or _shared_data())
         self.normals = fibonacci_normals(512)

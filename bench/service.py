@@ -1,6 +1,6 @@
 """``lightprobe bench service``: start-up, reconnect and WebSocket load of the probe service.
 
-Start-up and reconnect (``bench.service_startup``): exec -> API up -> first lights, cold (fresh
+Start-up and reconnect (``lightprobe.bench.service_startup``): exec -> API up -> first lights, cold (fresh
 state dir: tables built) and warm (tables cached); fresh lights after a 5 s camera disconnect.
 
 Load (bounded in time): ``lightprobe serve --camera sim --scene flashlight`` as a subprocess on
@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from device.core.sphere import LUMINANCE_WEIGHTS
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = ["run", "run_accuracy"]
 
@@ -71,7 +71,7 @@ def _start_service(state: Path, fps: float, light_count: int, scene: str = "flas
         cache.mkdir(parents=True, exist_ok=True)
         (state / "cache").symlink_to(cache.resolve(), target_is_directory=True)
     cfg.write_text(f"[pipeline]\nfps = {fps!r}\nlight_count = {light_count}\n[mdns]\nenabled = false\n")
-    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", "sim", "--scene", scene,
+    p = subprocess.Popen([sys.executable, "-m", "lightprobe.cli", "serve", "--camera", "sim", "--scene", scene,
                           "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
                          stderr=subprocess.DEVNULL, text=True)
@@ -126,7 +126,7 @@ def _client_load(url: str, clients: int) -> None:
 
 
 def _spawn_clients(url: str, clients: int) -> subprocess.Popen[str]:
-    code = f"from bench.service import _client_load; _client_load({url!r}, {clients})"
+    code = f"from lightprobe.bench.service import _client_load; _client_load({url!r}, {clients})"
     return subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                             preexec_fn=lambda: os.nice(19))
@@ -274,7 +274,7 @@ def upper_normals(n: int = 64) -> np.ndarray:
 def irradiance_truth(equirect: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Diffuse irradiance (N, 3) from the map's upper hemisphere, exact pixel sums (float64):
     E(n) = sum over pixels with y > 0 of L * Omega_pixel * max(0, n . w)."""
-    from device.core.sphere import equirect_directions, equirect_solid_angle
+    from lightprobe.core.sphere import equirect_directions, equirect_solid_angle
 
     h = equirect.shape[0]
     top = h // 2  # rows 0 .. h/2 - 1 are exactly the upper hemisphere
@@ -306,8 +306,8 @@ def compare_irradiance(truth: np.ndarray, est: np.ndarray) -> dict[str, float]:
 async def _accuracy_one(name: str, light_count: int, cache: Path | None = None) -> dict[str, Any]:
     import aiohttp
 
-    from bench.service_startup import stop_service
-    from sim.scenarios import load_scene
+    from lightprobe.bench.service_startup import stop_service
+    from lightprobe.sim.scenarios import load_scene
 
     with tempfile.TemporaryDirectory(prefix="lp-acc-") as tmp:
         p, url = _start_service(Path(tmp) / "state", 10.0, light_count, scene=name, cache=cache)
@@ -341,7 +341,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     Full: 3 cold and 8 warm starts, 3 reconnects, 30 s phases with 50 clients, all six maps.
     ``quick`` (< 1 min on a quiet machine): 1 cold and 3 warm starts, 1 reconnect, 6 s phases
     with 10 clients, no accuracy runs."""
-    from bench.service_startup import reconnect_latency, startup_summary
+    from lightprobe.bench.service_startup import reconnect_latency, startup_summary
 
     seconds, clients = (6.0, 10) if quick else (30.0, 50)
     startup = startup_summary(reps_warm=3 if quick else 8, reps_cold=1 if quick else 3)
@@ -361,7 +361,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         result["accuracy"] = acc
         summ["accuracy_max_rel_err_scaled"] = max(a["max_rel_err_scaled"] for a in acc)
         summ["accuracy_scale_range"] = [min(a["scale"] for a in acc), max(a["scale"] for a in acc)]
-    from bench.cli import machine_info
+    from lightprobe.bench.machine import machine_info
 
     result["machine"] = machine_info()
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ seconds by then (``/proc/PID/stat``: the least load-dependent figure on a shared
 cache is warm in both (it is built once per install, not per calibration).
 
 Reconnect: the service in-process (the real pipeline on the simulator, default backoff), a 5 s
-simulated disconnect (``sim.faults``); ``resume_s`` = first fresh (``stale: false``) light set
+simulated disconnect (``lightprobe.sim.faults``); ``resume_s`` = first fresh (``stale: false``) light set
 on the WebSocket minus the moment the camera is back, with the first burst's capture time.
 """
 
@@ -127,10 +127,10 @@ async def _reconnect_once(state: Path, outage_s: float) -> dict[str, Any]:
     import aiohttp
     from aiohttp import web
 
-    from device.cli.bootstrap import camera_factory, pipeline_factory
-    from device.service.app import create_app
-    from device.service.config import ServiceConfig
-    from device.service.state import STATE
+    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
+    from lightprobe.device.service.app import create_app
+    from lightprobe.device.service.config import ServiceConfig
+    from lightprobe.device.service.state import STATE
 
     cfg = ServiceConfig(path=state / "config.toml").with_patch(
         {"mdns": {"enabled": False}, "pipeline": {"fps": 10.0, "light_count": 256}})
@@ -180,11 +180,11 @@ def reconnect_latency(reps: int, outage_s: float = 5.0) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m bench.service_startup [--warm N] [--cold N] [--scene S] [--state DIR]``: the
+    """``python -m lightprobe.bench.service_startup [--warm N] [--cold N] [--scene S] [--state DIR]``: the
     start-up part alone (seconds; no plots). ``--state`` keeps the warm state dir between calls."""
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m bench.service_startup", description=main.__doc__)
+    p = argparse.ArgumentParser(prog="python -m lightprobe.bench.service_startup", description=main.__doc__)
     p.add_argument("--warm", type=int, default=5, help="warm starts (default 5)")
     p.add_argument("--cold", type=int, default=0, help="cold starts (default 0)")
     p.add_argument("--scene", default="lebombo")
@@ -247,7 +247,7 @@ def _start_serve(camera: str, scene: str, state: Path, cfg: Path, env: dict[str,
                  ) -> tuple[subprocess.Popen[str], str]:
     """``lightprobe serve`` as a user starts it; returns the process and the dashboard URL it
     printed."""
-    p = subprocess.Popen([sys.executable, "-m", "device.cli", "serve", "--camera", camera, "--scene", scene,
+    p = subprocess.Popen([sys.executable, "-m", "lightprobe.cli", "serve", "--camera", camera, "--scene", scene,
                           "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), **env}, stdout=subprocess.PIPE,
                          stderr=stderr, text=True)

@@ -1,9 +1,9 @@
 """Captures for the calibration routines when the probe itself is the source (``--camera SPEC``).
 
-The camera is any :class:`drivers.base.Camera` (``lightprobe calibrate`` gets it from the one
-factory, :func:`device.cli.bootstrap.open_cli_camera`; for the simulator the scene ``uniform``
+The camera is any :class:`lightprobe.drivers.base.Camera` (``lightprobe calibrate`` gets it from the one
+factory, :func:`lightprobe.device.bootstrap.open_cli_camera`; for the simulator the scene ``uniform``
 is a flat field, an integrating sphere). Each routine opens the camera, captures through the
-driver protocol (metadata-verified exposures, :func:`calibration.response.capture_bracket`) and
+driver protocol (metadata-verified exposures, :func:`lightprobe.calibration.response.capture_bracket`) and
 closes it:
 
 - :func:`sweep_bracket`: a metering sweep, one stop apart, from the first exposure where
@@ -13,7 +13,7 @@ closes it:
   the same size when the camera has one (else linearised with a response);
 
 The photometric routine's map (one HDR burst through the whole pipeline) is captured by the
-command layer (:func:`device.cli.bootstrap.capture_map`): the pipeline stands above calibration.
+command layer (:func:`lightprobe.device.bootstrap.capture_map`): the pipeline stands above calibration.
 
 Dtype policy: frames as the driver gives them (uint8 / uint16); linear images float64.
 """
@@ -24,9 +24,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from device.core.calibration import Response
-from device.core.errors import InputError
-from drivers.base import Camera, CameraError, Frame, PixelFormat
+from lightprobe.core.calibration import Response
+from lightprobe.core.errors import InputError
+from lightprobe.drivers.base import Camera, CameraError, Frame, PixelFormat
 
 from .response import capture_bracket
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from device.core.calibration import FisheyeModel
+from lightprobe.core.calibration import FisheyeModel
 
 __all__ = [
     "BoardSpec",

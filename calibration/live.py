@@ -4,13 +4,13 @@ grabs a view when the board is still and adds coverage, and reports progress.
 Per frame (:meth:`LiveFisheyeCalibration.feed`): detect the board; it is *still* when its
 corners moved less than ``still_px`` (max over corners) across the last ``still_frames``
 detections; a still view is *accepted* when it puts corners into a coverage cell (rings x
-sectors of the image circle, :func:`calibration.fisheye.coverage_grid`) that holds fewer than
+sectors of the image circle, :func:`lightprobe.calibration.fisheye.coverage_grid`) that holds fewer than
 ``cell_target`` corners, so holding the board in one place adds it once. After each accepted
-view (from ``min_views`` on) the robust solve (:func:`calibration.fisheye.calibrate_views`)
+view (from ``min_views`` on) the robust solve (:func:`lightprobe.calibration.fisheye.calibrate_views`)
 runs and updates the RMS; coverage then counts only the views the solve kept. ``good_enough``:
 at least ``min_views`` views, RMS <= ``target_rms`` and coverage >= ``target_coverage``.
 
-The frame source is any ``drivers.base.Camera`` (:meth:`run`) or plain images pushed into
+The frame source is any ``lightprobe.drivers.base.Camera`` (:meth:`run`) or plain images pushed into
 :meth:`feed` (a dashboard, a test). Nothing runs at import or construction.
 """
 
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from drivers.base import Camera, Frame
+from lightprobe.drivers.base import Camera, Frame
 
 from .fisheye import (
     BoardSpec,

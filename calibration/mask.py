@@ -21,8 +21,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from device.core.calibration import LensMask
-from device.core.sphere import LUMINANCE_WEIGHTS
+from lightprobe.core.calibration import LensMask
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = ["fill_masked", "find_mask", "mask_image", "radial_profile"]
 

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.core.calibration import Photometric
-from device.core.sphere import LUMINANCE_WEIGHTS
+from lightprobe.core.calibration import Photometric
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = ["LuxStats", "lux_statistics", "photometric_scale", "upper_irradiance", "upper_row_weights"]
 

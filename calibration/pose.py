@@ -1,6 +1,6 @@
 """Mounting pose: probe frame -> room frame, from installer angles or a board on the floor.
 
-Both frames are right-handed with +y up (CONVENTIONS.md); ``device.core.calibration.Pose`` maps
+Both frames are right-handed with +y up (CONVENTIONS.md); ``lightprobe.core.calibration.Pose`` maps
 ``x_room = R x_probe + position``.
 
 Installer angles (:func:`pose_from_angles`):
@@ -13,9 +13,9 @@ Installer angles (:func:`pose_from_angles`):
 
 Board on the floor (:func:`pose_from_board`): the board's +x axis defines room azimuth 0 (room
 -z), its normal towards the camera defines room +y; the board origin is the inner corner with a
-black square diagonally outside it (``calibration.fisheye.orient_corners``; use a board with one
+black square diagonally outside it (``lightprobe.calibration.fisheye.orient_corners``; use a board with one
 even and one odd corner count, else the heading is ambiguous by 180 degrees); ``cv2.fisheye.solvePnP`` (OpenCV >= 4.9)
-gives the board pose in the camera frame, and ``device.core.sphere.CAMERA_TO_PROBE`` links camera and
+gives the board pose in the camera frame, and ``lightprobe.core.sphere.CAMERA_TO_PROBE`` links camera and
 probe frames. Dtype policy: float64 throughout.
 """
 
@@ -24,8 +24,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from device.core.calibration import FisheyeModel, Pose
-from device.core.sphere import CAMERA_TO_PROBE
+from lightprobe.core.calibration import FisheyeModel, Pose
+from lightprobe.core.sphere import CAMERA_TO_PROBE
 
 __all__ = ["pose_from_angles", "pose_from_board", "rotation_angle_deg"]
 

@@ -15,7 +15,7 @@ the joint histograms of consecutive exposures [3] (:func:`code_scatter`), which 
 uses as its noise model.
 ``lightprobe fuse`` (estimating a stack's own response) and the technicians' ``lightprobe
 calibrate response`` both call :func:`response_from_stack` / :func:`solve_debevec`. Every table
-goes through the one repair rule (:func:`device.core.calibration.repair_inverse`) and is
+goes through the one repair rule (:func:`lightprobe.core.calibration.repair_inverse`) and is
 normalised so the full-scale code maps to 1 (:meth:`Response.normalised`, as
 :meth:`Response.linear`).
 
@@ -23,7 +23,7 @@ Raw output is linear after black-level subtraction; :func:`linearity_check` veri
 instead: for consecutive exposures, the ratio of summed signals over pixels valid in both frames
 must equal the exposure ratio; it reports the largest deviation in percent.
 
-:func:`capture_bracket` drives any ``drivers.base.Camera``: it applies each exposure and waits for
+:func:`capture_bracket` drives any ``lightprobe.drivers.base.Camera``: it applies each exposure and waits for
 a frame whose metadata shows it (the control latency of real sensors), averaging
 ``frames_per_exposure`` frames.
 
@@ -51,9 +51,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.core.calibration import Response, repair_inverse
-from device.core.errors import InputError
-from drivers.base import Camera, Controls, Frame
+from lightprobe.core.calibration import Response, repair_inverse
+from lightprobe.core.errors import InputError
+from lightprobe.drivers.base import Camera, Controls, Frame
 
 __all__ = ["SAMPLES", "SMOOTHNESS", "LinearityReport", "PairBins", "StackFit", "capture_bracket", "check_brightens",
            "code_scatter", "compare_inverse", "fit_stack", "gsolve", "linearity_check", "pair_bins",

@@ -28,9 +28,9 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from device.core.calibration import Calibration
-from device.core.errors import InputError
-from device.core.fsutil import atomic_write
+from lightprobe.core.calibration import Calibration
+from lightprobe.core.errors import InputError
+from lightprobe.core.fsutil import atomic_write
 
 __all__ = ["CalibrationStore", "CorruptCalibration", "LoadResult", "Version", "atomic_write",
            "load_calibration"]

@@ -1,7 +1,7 @@
 """Vignetting (flat field): recover the radial fall-off V(r) = 1 + a1 r^2 + a2 r^4 + a3 r^6.
 
 Two guided routines feed the same linear least-squares fit (the model of
-``device.core.calibration.Vignetting``; measured = V x true [1, sec. 2]):
+``lightprobe.core.calibration.Vignetting``; measured = V x true [1, sec. 2]):
 
 * flat field: a uniform light field (an integrating sphere, an opal diffuser over the lens);
   every valid pixel sees the same radiance c, so ``I(r) = c V(r)``;
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from device.core.calibration import Vignetting
-from device.core.sphere import LUMINANCE_WEIGHTS
+from lightprobe.core.calibration import Vignetting
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = ["fit_radial", "max_relative_error", "vignetting_from_flat_field", "vignetting_from_patches"]
 

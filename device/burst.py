@@ -26,7 +26,7 @@ it: with per-frame metadata, ``meta.exposure_s`` (and gain) within tolerance and
 ``exposure_verified``; without it, ``capabilities.control_latency_frames`` frames are skipped and
 the frame's brightness must have stepped by the expected ratio from the previous exposure. Stale
 frames are dropped; an exposure that does not land within ``max_frames`` frames or ``timeout``
-seconds raises :class:`drivers.base.CaptureTimeout`.
+seconds raises :class:`lightprobe.drivers.base.CaptureTimeout`.
 
 Pipelining. A camera whose frames carry verified metadata (libcamera, the simulator) takes one
 control request per frame, in order (a per-frame control queue): the burst requests exposure
@@ -41,12 +41,12 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from device.core.calibration import FisheyeModel, Response
-from drivers.base import Camera, CaptureTimeout, Controls, Frame
+from lightprobe.core.calibration import FisheyeModel, Response
+from lightprobe.drivers.base import Camera, CaptureTimeout, Controls, Frame
 
 __all__ = [
     "BracketPlanner",
@@ -494,3 +494,53 @@ async def _capture_pipelined(camera: Camera, exposures: list[float], gain: float
             if _matches(frame, exposures[i], gain, rel_tol, abs_tol):
                 got[i] = frame
                 break
+
+
+KEEP_EV = 0.2  # a replanned exposure this close (in EV, time and gain each) to one in use keeps it
+
+
+def ev_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """How far apart two (exposure, gain) controls are: the larger of the two in EV."""
+    return max(abs(math.log2(a[0] / b[0])), abs(math.log2(a[1] / b[1])))
+
+
+def keep_in_use(controls: list[tuple[float, float]], in_use: list[tuple[float, float]]
+                ) -> list[tuple[float, float]]:
+    """The schedule's hysteresis: a replanned exposure within ``KEEP_EV`` (~15%) of one in use
+    stays as it is, so a scene's noise does not re-time the bracket every plan; ascending, once
+    each."""
+    kept = [min(in_use, key=lambda o: ev_distance(o, c))
+            if min(ev_distance(o, c) for o in in_use) < KEEP_EV else c for c in controls]
+    return sorted(set(kept), key=lambda c: c[0] * c[1])
+
+
+@dataclass
+class ExposureSchedule:
+    """The exposures the camera cycles through: the shortest every other frame, or, for a camera
+    without per-frame metadata (``hold`` > 1), each exposure for ``hold`` frames in turn."""
+
+    controls: list[tuple[float, float]]  # ascending t g
+    sweep: bool = False
+    order: list[int] = field(default_factory=list)
+    pos: int = 0
+    hold: int = 1
+
+    def __post_init__(self) -> None:
+        n = len(self.controls)
+        if self.sweep:
+            self.order = list(range(n))
+        elif self.hold > 1:  # every change costs settling frames: change seldom
+            self.order = [k for k in range(n) for _ in range(self.hold)]
+        elif n <= 2:
+            self.order = list(range(n))
+        else:  # S, E1, S, E2, ...: the shortest measures a lamp within two frames
+            self.order = [k for i in range(1, n) for k in (0, i)]
+
+    def next(self) -> tuple[float, float]:
+        c = self.controls[self.order[self.pos % len(self.order)]]
+        self.pos += 1
+        return c
+
+    @property
+    def cycle_done(self) -> bool:
+        return self.pos >= len(self.order)

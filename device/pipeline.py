@@ -2,13 +2,13 @@
 
 :class:`Pipeline` runs one *frame* per :meth:`Pipeline.step`: the camera delivers one exposure of
 the current schedule; that frame is fused and projected at once into the output map (the equirect
-map's upper hemisphere, :func:`device.hdr.rolling.frame_to_map`), merged with the latest estimate
-of every other exposure in use (:class:`device.hdr.rolling.RollingMerge`: a lamp switching or a
+map's upper hemisphere, :func:`lightprobe.device.hdr.rolling.frame_to_map`), merged with the latest estimate
+of every other exposure in use (:class:`lightprobe.device.hdr.rolling.RollingMerge`: a lamp switching or a
 flashlight moving replaces the stale samples in this very frame), sampled into lights, and
 published. A light set per sensor frame; nothing at full sensor resolution that no output reads.
 
 The schedule (the exposures and gains the camera cycles through) is planned *for the lighting*
-(:class:`device.burst.BracketPlanner`, ``target="lighting"``): the shortest exposure keeps the
+(:class:`lightprobe.device.burst.BracketPlanner`, ``target="lighting"``): the shortest exposure keeps the
 brightest thing in view unsaturated (with headroom for what the scene showed in the last few
 seconds, a lamp that switches), the longest is only as long as the light the scene sends needs
 (its darkest corners, which carry less than ``dark_energy`` of the light, may stay noisy),
@@ -19,7 +19,7 @@ two frames whatever the cycle. The first cycle is a metering sweep over the came
 
 Cameras with per-frame metadata (libcamera, the simulator) take one control request per frame, a
 control latency ahead; each frame says which exposure it shows. Cameras without it (V4L2, UVC)
-settle each exposure by the verified-capture rule (:func:`device.burst.capture_burst`), one
+settle each exposure by the verified-capture rule (:func:`lightprobe.device.burst.capture_burst`), one
 usable frame per exposure.
 
 It skips what a scene does not need:
@@ -47,35 +47,32 @@ import asyncio
 import functools
 import logging
 import math
-import sys
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from device.core.calibration import Calibration
-from device.core.errors import InputError
-from device.core.sphere import equirect_row_solid_angle, luminance
-from drivers.base import Camera, Controls, Frame
+from lightprobe.core.calibration import Calibration
+from lightprobe.core.errors import InputError
+from lightprobe.core.sphere import luminance
+from lightprobe.device.burst import ExposureSchedule, keep_in_use
+from lightprobe.device.sampling.change import ChangeTest
+from lightprobe.drivers.base import Camera, Controls, Frame
 
-__all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "lights_on_demand", "tone_map"]
+if TYPE_CHECKING:
+    from lightprobe.device.projection.output import OutputGeometry
+
+__all__ = ["HISTOGRAM_EDGES_LOG2", "FrameResult", "Pipeline", "PipelineConfig", "lights_on_demand"]
 
 log = logging.getLogger(__name__)
 
 # Histogram of log2 luminance (the fused map, calibrated unit): 64 bins, fixed edges.
 HISTOGRAM_EDGES_LOG2 = np.linspace(-16.0, 24.0, 65)
-_PREVIEW_WIDTH = 320
-_COARSE = (8, 16)  # blocks of the upper hemisphere for the change test (rows, columns)
+PREVIEW_WIDTH = 320  # the dashboard's previews are at most this many pixels wide
 _REPLAN_S = 1.0  # replan the schedule at least this often (sensor seconds)
 _MEMORY_S = 10.0  # the shortest exposure keeps headroom for what was brightest this long ago
-_KEEP_EV = 0.2  # a replanned exposure this close (in EV, time and gain each) to one in use keeps it
-_MAX_MAPS = 8  # published maps' buffers kept for reuse (1.5 MB each at 256 rows)
 RELEASE_AFTER_FRAMES = 150  # frames after which the start's memory is handed back (5 s at 30 fps)
-
-
-def _ev_distance(a: tuple[float, float], b: tuple[float, float]) -> float:
-    return max(abs(math.log2(a[0] / b[0])), abs(math.log2(a[1] / b[1])))
 
 
 @dataclass
@@ -106,7 +103,7 @@ class PipelineConfig:
     sampler_params: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        from device.sampling.registry import SAMPLERS
+        from lightprobe.device.sampling.registry import SAMPLERS
 
         checks = [
             ("fps", 0 < self.fps <= 240),
@@ -131,14 +128,6 @@ class PipelineConfig:
                              "only ('zero')", param="lower")
 
 
-def tone_map(radiance: np.ndarray, valid: np.ndarray | None = None, width: int = _PREVIEW_WIDTH) -> np.ndarray:
-    """The dashboard's previews: :func:`device.tonemap.tone_map` (hue-preserving luminance
-    Reinhard, robust log-average key) at most ``width`` pixels wide."""
-    from device.tonemap import tone_map as _tone_map
-
-    return _tone_map(radiance, valid, width)
-
-
 class FrameResult:
     """One frame through every stage (what the service publishes). The fisheye preview and the
     histogram are computed on first use (the API asks for them now and then, frames come 30 a
@@ -160,11 +149,13 @@ class FrameResult:
     def preview(self) -> np.ndarray:
         """(h, w, 3) uint8 sRGB tone-mapped fisheye view of the latest mid-bracket frame (what the
         camera sees, for aiming), or of the fused map when there is no frame."""
+        from lightprobe.device.tonemap import tone_map
+
         src = self._preview_source
         if src is None:
-            return tone_map(self.equirect)
+            return tone_map(self.equirect, None, PREVIEW_WIDTH)
         radiance, valid = src()
-        return tone_map(radiance, valid)
+        return tone_map(radiance, valid, PREVIEW_WIDTH)
 
     @functools.cached_property
     def histogram(self) -> np.ndarray:
@@ -175,42 +166,10 @@ class FrameResult:
             return np.histogram(np.log2(lum), bins=HISTOGRAM_EDGES_LOG2)[0]
 
 
-@dataclass
-class _Schedule:
-    """The exposures the camera cycles through: the shortest every other frame, or, for a camera
-    without per-frame metadata (``hold`` > 1), each exposure for ``hold`` frames in turn."""
-
-    controls: list[tuple[float, float]]  # ascending t g
-    sweep: bool = False
-    order: list[int] = field(default_factory=list)
-    pos: int = 0
-    hold: int = 1
-
-    def __post_init__(self) -> None:
-        n = len(self.controls)
-        if self.sweep:
-            self.order = list(range(n))
-        elif self.hold > 1:  # every change costs settling frames: change seldom
-            self.order = [k for k in range(n) for _ in range(self.hold)]
-        elif n <= 2:
-            self.order = list(range(n))
-        else:  # S, E1, S, E2, ...: the shortest measures a lamp within two frames
-            self.order = [k for i in range(1, n) for k in (0, i)]
-
-    def next(self) -> tuple[float, float]:
-        c = self.controls[self.order[self.pos % len(self.order)]]
-        self.pos += 1
-        return c
-
-    @property
-    def cycle_done(self) -> bool:
-        return self.pos >= len(self.order)
-
-
 class Pipeline:
     """One probe's live pipeline (see the module docstring).
 
-    ``step()`` raises :class:`drivers.base.CameraError` on camera faults; the caller (the
+    ``step()`` raises :class:`lightprobe.drivers.base.CameraError` on camera faults; the caller (the
     service's frame loop) reconnects with backoff and keeps serving the last good result; the
     rolling estimate and the schedule survive the reconnect.
     """
@@ -226,22 +185,19 @@ class Pipeline:
         self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0}
         self._tables: asyncio.Future[Any] | None = None
         self._sampler_warm: asyncio.Future[Any] | None = None  # (see _warm_sampler)
-        self._geo: Any = None  # projection table and per-pixel constants (_Geometry)
+        self._geo: Any = None  # projection table and per-pixel constants (OutputGeometry)
         self._refine = False  # a coarse table serves: build the balanced one behind it
         self._settled: tuple[float, float] | None = None  # controls a metadata-less camera runs now
         self._refining: asyncio.Future[Any] | None = None
         self._merge: Any = None
         self._sampler: Any = None
-        self._schedule: _Schedule | None = None
+        self._schedule: ExposureSchedule | None = None
         self._planner: Any = None
         self._frame = 0
         self._started = False
         self._steps = 0  # frames processed (the start's memory is handed back once, see step)
         self._stream_on = False
-        self._last_sampled: tuple[np.ndarray, float] | None = None  # (coarse energy, monotonic time)
-        self._sampled_lum: np.ndarray | None = None  # luminance x solid angle per pixel when last sampled
-        self._changed_since: np.ndarray | None = None  # pixels the merge found changed since then
-        self._guessed = False  # the last sampled map held energy no exposure measured (a moving lamp)
+        self._change = ChangeTest()  # whether a frame may republish the last light set
         self._extra_lights = 0
         self._planned_at = -math.inf  # sensor time of the last plan
         self._bright: list[tuple[float, float]] = []  # (sensor time, brightest rate) history
@@ -252,7 +208,7 @@ class Pipeline:
     async def start(self) -> None:
         """Open the camera (matching the calibration's image size); the projection table loads
         (or is built) in a worker thread while the first frame is captured."""
-        from device.burst import BracketPlanner
+        from lightprobe.device.burst import BracketPlanner
 
         await self.camera.open()
         fe = self.calibration.fisheye
@@ -276,7 +232,7 @@ class Pipeline:
                                        dark_energy=cfg.dark_energy, frame_time_s=frame_time,
                                        gain_range=caps.gain_range, step_s=caps.exposure_step_s)
         if self._schedule is None:
-            self._schedule = _Schedule(self._sweep(), sweep=True)
+            self._schedule = ExposureSchedule(self._sweep(), sweep=True)
         self._stream_on = True
         self._settled = None  # a (re)opened stream: settle the first controls again
         self._started = True
@@ -306,7 +262,7 @@ class Pipeline:
         self.config = config
         if (config.sampler, config.sampler_params) != (old.sampler, old.sampler_params):
             self._sampler = self._make_sampler(config.sampler)
-            self._last_sampled = None
+            self._change.reset()
         if config.equirect_height != old.equirect_height:
             self._geo, self._tables, self._merge = None, None, None
             self._refine, self._refining = False, None
@@ -317,15 +273,15 @@ class Pipeline:
             self._planner.dark_energy = config.dark_energy
             self._planned_at = -math.inf
         if config.light_count != old.light_count:
-            self._last_sampled = None
+            self._change.reset()
 
     def _make_sampler(self, name: str) -> Any:
-        from device.sampling.registry import make_sampler
+        from lightprobe.device.sampling.registry import make_sampler
 
         return make_sampler(name, **self.config.sampler_params)
 
     # ---- tables -------------------------------------------------------------------------------
-    def _build_geometry(self, coarse_first: bool | None = None) -> _Geometry:
+    def _build_geometry(self, coarse_first: bool | None = None) -> OutputGeometry:
         """The equirect table (from ``cache_dir`` when built before), per output pixel constants,
         and one warm-up of every kernel the first frame runs (numba's cache loads them here, in
         parallel with the first capture).
@@ -334,7 +290,8 @@ class Pipeline:
         ``coarse_first`` (default ``PipelineConfig.staged_start``), a coarse one is built now (no solid-angle balancing, one subpixel per
         fisheye pixel: ~1 s less) so the first lights come sooner, and the balanced table is
         built behind the running pipeline (:meth:`_refine_tables`), which swaps it in."""
-        from device.projection import Projector
+        from lightprobe.device.projection import Projector
+        from lightprobe.device.projection.output import OutputGeometry
 
         cfg = self.config
         if coarse_first is None:
@@ -346,7 +303,7 @@ class Pipeline:
         except LookupError:
             projector = Projector(self.calibration, subdiv=1, balance=False, **kw)
             self._refine = True
-        geo = _Geometry(projector, self.calibration, cfg.equirect_height)
+        geo = OutputGeometry(projector, self.calibration, cfg.equirect_height)
         try:  # warm-up only: a failure costs the first frame time, nothing else
             self._warm(geo)
         except Exception as e:
@@ -354,13 +311,13 @@ class Pipeline:
         # the table build's temporaries; a table loaded from disk leaves none, and the
         # collection cost 60-80 ms of a warm start (the frames release memory once they run)
         if projector.built_now:
-            from device.core.memory import release_memory
+            from lightprobe.device.allocator import release_memory
 
             release_memory()
         return geo
 
-    def _warm(self, geo: _Geometry) -> None:
-        from device.hdr.rolling import RollingMerge, frame_to_map
+    def _warm(self, geo: OutputGeometry) -> None:
+        from lightprobe.device.hdr.rolling import RollingMerge, frame_to_map
 
         fe = self.calibration.fisheye
         assert fe is not None
@@ -397,7 +354,7 @@ class Pipeline:
         sampler.sample(warm, self.config.light_count)
 
     async def _ensure_tables(self) -> None:
-        from device.hdr.rolling import RollingMerge
+        from lightprobe.device.hdr.rolling import RollingMerge
 
         if self._geo is None:
             if self._tables is None:
@@ -457,8 +414,8 @@ class Pipeline:
         self._steps += 1
         if self._steps == RELEASE_AFTER_FRAMES:
             # the start is over (every kernel the frames use is linked, the tables swapped in):
-            # hand back its garbage and the start's library pages once (device.core.memory)
-            from device.core.memory import release_memory
+            # hand back its garbage and the start's library pages once (lightprobe.device.allocator)
+            from lightprobe.device.allocator import release_memory
 
             await asyncio.to_thread(release_memory)
         self.latest = result
@@ -466,7 +423,7 @@ class Pipeline:
 
     async def _capture(self) -> tuple[Frame, float, float]:
         """One usable frame and the (exposure, gain) it shows."""
-        from device.burst import capture_burst
+        from lightprobe.device.burst import capture_burst
 
         assert self._schedule is not None
         caps = self.camera.capabilities
@@ -498,9 +455,9 @@ class Pipeline:
         lut, dark = geo.lut(exposure, gain, frame.format, frame.black_level, frame.white_level)
         codes = np.ascontiguousarray(frame.data).reshape(-1, 3)
         if codes.dtype not in (np.uint8, np.uint16):
-            from device.hdr.fusion import _as_index
+            from lightprobe.device.hdr.fusion import as_index
 
-            codes = _as_index(codes, lut.shape[0] - 1).reshape(-1, 3)
+            codes = as_index(codes, lut.shape[0] - 1).reshape(-1, 3)
         t1 = time.perf_counter()
         fused = merge.update((exposure, gain), self._frame, geo.table, geo.geo_n, geo.mean_gain, codes,
                              lut, dark, geo.sharing)
@@ -510,22 +467,14 @@ class Pipeline:
         now = time.time()
         lum_w = geo.weighted_luminance(fused)
         coarse = geo.coarse_energy(lum_w)
-        if self._changed_since is None or self._changed_since.shape != merge.changed.shape:
-            self._changed_since = np.zeros_like(merge.changed)
-        self._changed_since |= merge.changed
-        self._changed_since |= merge.held
+        self._change.observe(merge.changed, merge.held)
         skipped = self._unchanged(coarse, fused)
         if skipped:
             lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False)  # type: ignore[union-attr]
         else:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp = self._frame, now
-            self._last_sampled = (coarse, time.monotonic())
-            if self._sampled_lum is None or self._sampled_lum.shape != lum_w.shape:
-                self._sampled_lum = np.empty_like(lum_w)
-            np.copyto(self._sampled_lum, lum_w)
-            self._changed_since[:] = False
-            self._guessed = bool(merge.held.any())
+            self._change.sampled(coarse, lum_w, merge.held)
         t3 = time.perf_counter()
         if self._is_preview_exposure(exposure, gain):
             self._preview = (frame, lut)
@@ -574,36 +523,20 @@ class Pipeline:
         recent = max(s for _, s in self._bright)
         controls = self._planner.controls(rates, saturated=saturated, weights=weights, min_peak=recent)
         if not sched.sweep:  # hysteresis: an exposure within ~15% of one in use stays as it is
-            controls = [min(sched.controls, key=lambda o: _ev_distance(o, c))
-                        if min(_ev_distance(o, c) for o in sched.controls) < _KEEP_EV else c for c in controls]
-            controls = sorted(set(controls), key=lambda c: c[0] * c[1])
+            controls = keep_in_use(controls, sched.controls)
         keep = set(controls)
         merge.forget(keep, older_than=self._frame - 2 * len(controls))
-        self._schedule = _Schedule(controls, hold=self._hold())
+        self._schedule = ExposureSchedule(controls, hold=self._hold())
         self._planned_at = sensor_t
 
     def _unchanged(self, coarse: np.ndarray, fused: np.ndarray) -> bool:
-        if self._last_sampled is None or self.latest is None:
+        if self.latest is None:
             return False
         sched = self._schedule
         if sched is not None and (sched.sweep or sched.pos <= len(sched.order)):
             return False  # the estimate is still taking in a new schedule's exposures
-        if self._guessed:
-            return False  # the last set placed a moving lamp by guess: publish the measurement
-        ref, when = self._last_sampled
-        if time.monotonic() - when > self.config.max_skip_s:
-            return False
-        denom = float(np.abs(ref).sum())
-        if denom <= 0:
-            return float(np.abs(coarse).sum()) <= 0
-        if float(np.abs(coarse - ref).sum()) / denom >= self.config.change_threshold:
-            return False
-        moved = np.flatnonzero(self._changed_since) if self._changed_since is not None else np.zeros(0, np.intp)
-        if len(moved) and self._sampled_lum is not None and self._geo is not None:
-            now = luminance(fused[moved].astype(np.float64)) * self._geo.solid_angle_out[moved]
-            if float(np.abs(now - self._sampled_lum[moved]).sum()) / denom >= self.config.change_threshold:
-                return False
-        return True
+        return self._change.unchanged(coarse, fused, self._geo.solid_angle_out,
+                                      threshold=self.config.change_threshold, max_skip_s=self.config.max_skip_s)
 
     @property
     def unit(self) -> str:
@@ -631,123 +564,6 @@ class Pipeline:
         s["fps"] = float(s["fps"]) if math.isfinite(s["fps"]) else 0.0
 
 
-class _Geometry:
-    """What the pipeline derives once per calibration and output size: the equirect table's
-    upper-hemisphere rows, per output pixel constants (solid angle, mean inverse gain), the
-    coarse blocks of the change test and the fusion LUTs per exposure."""
-
-    def __init__(self, projector: Any, calibration: Calibration, height: int) -> None:
-        from device.projection import sample_sharing
-
-        self.projector = projector
-        self.calibration = calibration
-        self.height = height
-        self.table = projector.table("equirect")
-        self.inv_gain = np.ascontiguousarray(projector.inverse_gain, np.float64)
-        self.rows = height // 2 * 2 * height  # the upper hemisphere's output pixels
-        t = self.table
-        ip = np.asarray(t.indptr[: self.rows + 1])
-        row_of = np.repeat(np.arange(self.rows), np.diff(ip))
-        d = np.asarray(t.data[: ip[-1]], np.float64)
-        ig = self.inv_gain[np.asarray(t.indices[: ip[-1]])]
-        geo_w = np.bincount(row_of, d * ig, self.rows)
-        self.inv_gain_out = np.where(geo_w > 0, np.bincount(row_of, d * ig * ig, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
-        self.mean_gain = np.where(geo_w > 0, np.bincount(row_of, d, self.rows) / np.maximum(geo_w, 1e-300), 0.0)
-        self.geo_n = (d * ig).astype(np.float32)  # each entry's geometric weight (data / gain)
-        self.sharing = sample_sharing(ip, t.indices, d * ig, self.rows, row_of, geo_w)  # (for the lamp tracker)
-        omega = equirect_row_solid_angle(height)[: height // 2]
-        self.solid_angle_out = np.repeat(omega, 2 * height)
-        resp = calibration.response
-        assert resp is not None
-        self.full_scale = float(np.max(resp.inverse[-1]))
-        self._luts: dict[tuple[Any, ...], tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]] = {}
-        self._maps: list[np.ndarray] = []  # the published maps' buffers (see equirect_map)
-        self._lum: np.ndarray | None = None  # the change tests' per-pixel energy (see weighted_luminance)
-
-    def equirect_map(self, fused: np.ndarray) -> np.ndarray:
-        """A new (H, 2H, 3) map: ``fused`` in the upper half, zeros below.
-
-        Each frame publishes one, and results outlive their frame (the latest result, a request
-        encoding it, a subscriber's queue), so a map is never written again while anything refers
-        to it. A fresh 1.5 MB array costs its page faults every frame (0.37 ms against 0.03 ms
-        for a resident buffer, measured with the service's allocator settings), so the buffers
-        are kept and one is reused once nothing but this list holds it: its reference count says
-        so (a view of it, a memoryview, or any other holder counts). At most ``_MAX_MAPS`` are kept."""
-        buf = None
-        for b in self._maps:
-            if sys.getrefcount(b) <= 3:  # this list, the loop variable, the call's argument
-                buf = b
-                break
-        if buf is None:
-            buf = np.empty((self.height, 2 * self.height, 3), np.float32)
-            if len(self._maps) < _MAX_MAPS:
-                self._maps.append(buf)
-        half = self.height // 2
-        buf[:half] = fused.reshape(half, 2 * self.height, 3)
-        buf[half:] = 0.0
-        return buf
-
-    def lut(self, exposure: float, gain: float, fmt: Any, black: float = 0.0, white: float = 255.0
-            ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """The fusion LUT of one exposure and its bounds (:func:`device.hdr.rolling.lut_bounds`),
-        memoised per (exposure, gain, format, levels): a live probe repeats a few exposures, and
-        the fusion module's own memo hashes the response per call."""
-        key = (float(exposure), float(gain), fmt, float(black), float(white))
-        hit = self._luts.get(key)
-        if hit is None:
-            if len(self._luts) >= 64:
-                self._luts.clear()
-            hit = self._luts[key] = self._build_lut(exposure, gain, fmt, black, white)
-        return hit
-
-    def _build_lut(self, exposure: float, gain: float, fmt: Any, black: float, white: float
-                   ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        from device.hdr.fusion import FusionSettings, _sanitized, packed_lut
-        from device.hdr.rolling import lut_bounds
-
-        st = FusionSettings()
-        resp = self.calibration.response
-        assert resp is not None
-        if fmt.is_raw:
-            levels = 1 << fmt.bit_depth
-            z = np.arange(levels, dtype=np.float64)
-            inv = np.repeat(np.clip((z - black) / max(white - black, 1.0), 0.0, None)[:, None], 3, axis=1)
-            lut = packed_lut(inv, exposure, gain, black=black, sat=white, settings=st)
-        else:
-            inv = _sanitized(resp.inverse)
-            lut = packed_lut(inv, exposure, gain, black=0.0, sat=float(inv.shape[0] - 1), settings=st,
-                             log_sigma=resp.log_sigma, log_sigma_core=resp.log_sigma_core)
-        return lut, lut_bounds(lut)
-
-    def weighted_luminance(self, fused: np.ndarray) -> np.ndarray:
-        """Luminance x solid angle of each upper-hemisphere output pixel (rows,) float64: what
-        the change tests compare, computed once per frame into one buffer that the next call
-        overwrites (a fresh 512 kB array a frame paid its page faults under the service's
-        allocator settings, as the maps did)."""
-        from device.hdr.rolling import weighted_luminance
-
-        if self._lum is None or self._lum.shape[0] != fused.shape[0]:
-            self._lum = np.empty(fused.shape[0], np.float64)
-        return weighted_luminance(fused, self.solid_angle_out, self._lum)
-
-    def coarse_energy(self, lum_w: np.ndarray) -> np.ndarray:
-        """:meth:`weighted_luminance` summed in _COARSE blocks of the upper hemisphere."""
-        r, c = _COARSE
-        h, w = self.height // 2, 2 * self.height
-        if h % r or w % c:
-            return np.asarray([float(lum_w.sum())])
-        return lum_w.reshape(r, h // r, c, w // c).sum(axis=(1, 3)).ravel()
-
-    def linear_frame(self, frame: Frame, lut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A frame's linear radiance (h, w, 3) float32 through its LUT (x pixel gain) and the
-        lens mask: the fisheye preview's input."""
-        codes = np.asarray(frame.data)
-        h, w = codes.shape[:2]
-        vals = np.stack([lut[codes[..., c].astype(np.intp), c, 0] for c in range(3)], axis=-1)
-        gain = (np.where(self.inv_gain > 0, 1.0 / np.maximum(self.inv_gain, 1e-300), 0.0)).reshape(h, w)
-        return (vals * gain[..., None]).astype(np.float32), self.projector.lens_mask
-
-
 def _useful_lights(sampler: Any, equirect: np.ndarray, count: int, extra: int) -> tuple[Any, int]:
     """``count`` lights that carry energy, and the new ``extra``. A tree sampler keeps leaves
     over the empty lower hemisphere (its 12 base quads cannot merge); those are not published,
@@ -773,7 +589,7 @@ def lights_on_demand(result: FrameResult, method: str, count: int) -> Any:
     it: a camera reconnecting, a calibration session or a pipeline rebuilt after a change all
     keep the last good frame sampleable. The set carries that frame's number, time, probe, unit
     and pose."""
-    from device.sampling.registry import SAMPLERS, make_sampler
+    from lightprobe.device.sampling.registry import SAMPLERS, make_sampler
 
     if method not in SAMPLERS:
         raise InputError(f"method {method!r} is not one of {sorted(SAMPLERS)}", param="method")

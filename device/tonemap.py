@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from device.core.sphere import LUMINANCE_WEIGHTS
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = ["LUMINANCE", "log_average_key", "tone_map"]
 

@@ -1,7 +1,7 @@
 """The camera protocol every backend implements: types, errors and the async interface.
 
-Backends (``drivers.v4l2``, ``drivers.libcamera``, ``drivers.uvc``) and the simulator
-(``sim.camera``) implement :class:`Camera`; the burst logic in ``device.burst`` only talks to this
+Backends (``lightprobe.drivers.v4l2``, ``lightprobe.drivers.libcamera``, ``lightprobe.drivers.uvc``) and the simulator
+(``lightprobe.sim.camera``) implement :class:`Camera`; the burst logic in ``lightprobe.device.burst`` only talks to this
 protocol, so the whole service runs unchanged on any of them.
 
 Units at this boundary are SI: exposure times in seconds (drivers convert from 100 us units or
@@ -12,7 +12,7 @@ carry the exposure the *sensor* used: when the backend reads it from per-frame m
 (libcamera, the simulator) ``FrameMetadata.exposure_verified`` is True; when it can only infer it
 (V4L2 has no per-frame exposure), the backend sets ``exposure_verified=False`` and reports the
 requested value only once its settling rule (``Capabilities.control_latency_frames`` frames after
-the request) says it has landed. ``device.burst`` accepts a frame only when its metadata shows the
+the request) says it has landed. ``lightprobe.device.burst`` accepts a frame only when its metadata shows the
 requested exposure.
 """
 
@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Self
 import numpy as np
 
 if TYPE_CHECKING:
-    from device.core.calibration import Calibration
+    from lightprobe.core.calibration import Calibration
 
 __all__ = [
     "BoardTarget",

@@ -30,8 +30,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from device.core.errors import InputError
-from drivers.base import Camera, CameraBusy, CameraError, CameraUnavailable
+from lightprobe.core.errors import InputError
+from lightprobe.drivers.base import Camera, CameraBusy, CameraError, CameraUnavailable
 
 __all__ = [
     "PLUGIN_GROUP",
@@ -151,9 +151,9 @@ def _v4l2_candidates(by_id_dir: str, dev_glob: str) -> list[str]:
 # ---- listing ------------------------------------------------------------------------------------
 def probe_v4l2(path: str, opener: Callable[[], Any] | None = None) -> CameraInfo | None:
     """QUERYCAP + modes + exposure controls of one node; None for non-capture / internal nodes."""
-    from drivers.v4l2._ioctl import DeviceTransport
-    from drivers.v4l2.camera import V4L2Camera, enumerate_modes
-    from drivers.v4l2.controls import V4L2Controls
+    from lightprobe.drivers.v4l2._ioctl import DeviceTransport
+    from lightprobe.drivers.v4l2.camera import V4L2Camera, enumerate_modes
+    from lightprobe.drivers.v4l2.controls import V4L2Controls
 
     spec = f"v4l2:{path}"
     try:
@@ -185,7 +185,7 @@ def probe_v4l2(path: str, opener: Callable[[], Any] | None = None) -> CameraInfo
 
 
 def _list_uvc(usb_backend: Any) -> list[CameraInfo]:
-    from drivers.uvc import UvcControls, find_uvc_devices
+    from lightprobe.drivers.uvc import UvcControls, find_uvc_devices
 
     out = []
     for dev in find_uvc_devices(usb_backend):
@@ -246,14 +246,14 @@ def open_camera(spec: str, *, usb_backend: Any = None, frame_source: Any = None,
     simulator's ``scene``, ``cache_dir``, ...); hardware backends take none."""
     kind, arg = parse_spec(spec)
     if kind == "v4l2":
-        from drivers.v4l2.camera import V4L2Camera
+        from lightprobe.drivers.v4l2.camera import V4L2Camera
 
         path = _stable_path(arg, by_id_dir)
         if path != arg:
             log.info("using stable path %s for %s", path, arg)
         return V4L2Camera(path)
     if kind == "libcamera":
-        from drivers.libcamera import Picamera2Camera
+        from lightprobe.drivers.libcamera import Picamera2Camera
 
         return Picamera2Camera(int(arg or 0))
     if kind == "uvc":
@@ -265,8 +265,8 @@ def open_camera(spec: str, *, usb_backend: Any = None, frame_source: Any = None,
 
 
 def _open_uvc(arg: str, usb_backend: Any, frame_source: Any, by_id_dir: str, sys_root: str) -> Camera:
-    from drivers.uvc import UvcCamera, find_uvc_devices, v4l2_controls_with_uvc_fallback
-    from drivers.v4l2.camera import V4L2Camera
+    from lightprobe.drivers.uvc import UvcCamera, find_uvc_devices, v4l2_controls_with_uvc_fallback
+    from lightprobe.drivers.v4l2.camera import V4L2Camera
 
     ids = _parse_vid_pid(arg) if arg else None
     vid, pid = ids if ids is not None else (None, None)

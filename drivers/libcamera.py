@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import (
+from lightprobe.drivers.base import (
     Camera,
     CameraBusy,
     CameraUnavailable,
@@ -41,7 +41,7 @@ from drivers.base import (
     Mode,
     PixelFormat,
 )
-from drivers.v4l2.convert import bayer_to_rgb
+from lightprobe.drivers.v4l2.convert import bayer_to_rgb
 
 __all__ = ["Picamera2Camera", "RequestState", "SequenceCounter", "matches_request", "raw_to_rgb", "to_controls"]
 

@@ -30,7 +30,7 @@ from typing import Any, Self
 
 import serial
 
-from device.core.errors import LightprobeError
+from lightprobe.core.errors import LightprobeError
 
 __all__ = [
     "T10A",

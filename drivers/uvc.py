@@ -18,7 +18,7 @@ these same CT/PU requests). :class:`UvcControls` is for devices *not* bound to u
 what :func:`v4l2_controls_with_uvc_fallback` tries when a V4L2 node lacks the exposure controls.
 :class:`UvcCamera` composes the controls with a :class:`FrameSource`; frames never travel over
 this path, so on hardware the frame source is a separate capture path, and in tests it is
-``sim.usb.SimUvcFrames`` (simulated frames rendered from the simulated device's sensor state).
+``lightprobe.sim.usb.SimUvcFrames`` (simulated frames rendered from the simulated device's sensor state).
 Importing this module does nothing (pyusb is imported, no device is touched).
 """
 
@@ -35,7 +35,7 @@ import numpy as np
 import usb.core
 import usb.util
 
-from drivers.base import (
+from lightprobe.drivers.base import (
     Camera,
     CameraBusy,
     CameraDisconnected,
@@ -49,14 +49,14 @@ from drivers.base import (
     FrameMetadata,
     Mode,
 )
-from drivers.v4l2.controls import (
+from lightprobe.drivers.v4l2.controls import (
     EXPOSURE_UNIT_S,
     ControlBackend,
     ControlInfo,
     ControlRanges,
     V4L2Controls,
 )
-from drivers.v4l2.settle import SettleTracker, frame_level
+from lightprobe.drivers.v4l2.settle import SettleTracker, frame_level
 
 __all__ = [
     "FrameSource",
@@ -149,7 +149,7 @@ def _vc_interface(dev: usb.core.Device) -> Any:
 class UvcControls(ControlRanges):
     """Exposure/gain (and extension-unit) controls of one UVC device over pyusb.
 
-    Implements :class:`drivers.v4l2.controls.ControlBackend`. Gain factor = raw / GET_DEF.
+    Implements :class:`lightprobe.drivers.v4l2.controls.ControlBackend`. Gain factor = raw / GET_DEF.
     """
 
     def __init__(self, device: usb.core.Device, *, timeout_ms: int = 500) -> None:

@@ -1,21 +1,23 @@
-"""hostlink: find lightprobe units, follow their lights, merge several probes for host renderers.
+"""lightprobe.hostlink: find lightprobe units, follow their lights, merge several probes for host renderers.
 
 The public, typed surface (everything else is internal)::
 
-    from hostlink import Discovery, ProbeClient, MergedStream, merge_q2trees
+    from lightprobe.hostlink import Discovery, ProbeClient, MergedStream, merge_q2trees
 
-- :class:`Discovery` (``hostlink.discovery``): mDNS browsing of ``_lightprobe._tcp`` keyed by the
+- :class:`Discovery` (``lightprobe.hostlink.discovery``): mDNS browsing of ``_lightprobe._tcp`` keyed by the
   TXT ``id``, plus manual ``host:port`` addresses.
-- :class:`ProbeClient` (``hostlink.client``): status, light sets, HDR map, Q2-Tree, WebSocket
+- :class:`ProbeClient` (``lightprobe.hostlink.client``): status, light sets, HDR map, Q2-Tree, WebSocket
   subscription with reconnect/backoff; typed errors :class:`ProbeError` and subclasses.
-- :mod:`hostlink.merge`: Nikodym et al. 2013 Algorithm 2 (:func:`merge_q2trees`), index
+- :mod:`lightprobe.hostlink.merge`: Nikodym et al. 2013 Algorithm 2 (:func:`merge_q2trees`), index
   interpolation (:func:`merge_indexed`), distance weights (:func:`probe_weights`),
   :func:`merge_probes` with failed probes dropping out.
-- :mod:`device.core.q2wire`: the compact binary Q2-Tree encoding (:func:`encode_q2tree`,
+- :mod:`lightprobe.core.q2wire`: the compact binary Q2-Tree encoding (:func:`encode_q2tree`,
   :func:`decode_q2tree`, :class:`Q2DecodeError`).
-- :class:`MergedStream` (``hostlink.stream``): a live merged stream over several probes.
+- :class:`MergedStream` (``lightprobe.hostlink.stream``): a live merged stream over several probes.
+- The host formats' types (from the base layer): :class:`SHLighting` (``GET /sh``),
+  :class:`CubeMap` (a decoded ``cubemap.ktx2``), :class:`EnvironmentFiles` (glTF / USD bundles).
 
-Importing ``hostlink`` is cheap: names resolve lazily on first use (PEP 562).
+Importing ``lightprobe.hostlink`` is cheap: names resolve lazily on first use (PEP 562).
 """
 
 from __future__ import annotations
@@ -24,8 +26,11 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from device.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree, encode_q2tree
-    from hostlink.client import (
+    from lightprobe.core.ktx2 import CubeMap
+    from lightprobe.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree, encode_q2tree
+    from lightprobe.core.scene_files import EnvironmentFiles
+    from lightprobe.core.sh import SHLighting
+    from lightprobe.hostlink.client import (
         ProbeAuthError,
         ProbeClient,
         ProbeError,
@@ -33,8 +38,8 @@ if TYPE_CHECKING:
         ProbeRequestError,
         ProbeUnavailable,
     )
-    from hostlink.discovery import Discovery, ProbeEvent, ProbeInfo
-    from hostlink.merge import (
+    from lightprobe.hostlink.discovery import Discovery, ProbeEvent, ProbeInfo
+    from lightprobe.hostlink.merge import (
         MergeError,
         ProbeInput,
         merge_indexed,
@@ -42,33 +47,38 @@ if TYPE_CHECKING:
         merge_q2trees,
         probe_weights,
     )
-    from hostlink.stream import MergedStream
+    from lightprobe.hostlink.stream import MergedStream
 
 _EXPORTS = {
-    "Discovery": "hostlink.discovery",
-    "ProbeEvent": "hostlink.discovery",
-    "ProbeInfo": "hostlink.discovery",
-    "ProbeAuthError": "hostlink.client",
-    "ProbeClient": "hostlink.client",
-    "ProbeError": "hostlink.client",
-    "ProbeProtocolError": "hostlink.client",
-    "ProbeRequestError": "hostlink.client",
-    "ProbeUnavailable": "hostlink.client",
-    "MergeError": "hostlink.merge",
-    "ProbeInput": "hostlink.merge",
-    "merge_indexed": "hostlink.merge",
-    "merge_probes": "hostlink.merge",
-    "merge_q2trees": "hostlink.merge",
-    "probe_weights": "hostlink.merge",
-    "Q2DecodeError": "device.core.q2wire",
-    "Q2Tree": "device.core.q2wire",
-    "decode_q2tree": "device.core.q2wire",
-    "encode_q2tree": "device.core.q2wire",
-    "MergedStream": "hostlink.stream",
+    "Discovery": "lightprobe.hostlink.discovery",
+    "ProbeEvent": "lightprobe.hostlink.discovery",
+    "ProbeInfo": "lightprobe.hostlink.discovery",
+    "ProbeAuthError": "lightprobe.hostlink.client",
+    "ProbeClient": "lightprobe.hostlink.client",
+    "ProbeError": "lightprobe.hostlink.client",
+    "ProbeProtocolError": "lightprobe.hostlink.client",
+    "ProbeRequestError": "lightprobe.hostlink.client",
+    "ProbeUnavailable": "lightprobe.hostlink.client",
+    "MergeError": "lightprobe.hostlink.merge",
+    "ProbeInput": "lightprobe.hostlink.merge",
+    "merge_indexed": "lightprobe.hostlink.merge",
+    "merge_probes": "lightprobe.hostlink.merge",
+    "merge_q2trees": "lightprobe.hostlink.merge",
+    "probe_weights": "lightprobe.hostlink.merge",
+    "Q2DecodeError": "lightprobe.core.q2wire",
+    "Q2Tree": "lightprobe.core.q2wire",
+    "decode_q2tree": "lightprobe.core.q2wire",
+    "encode_q2tree": "lightprobe.core.q2wire",
+    "MergedStream": "lightprobe.hostlink.stream",
+    "SHLighting": "lightprobe.core.sh",
+    "CubeMap": "lightprobe.core.ktx2",
+    "EnvironmentFiles": "lightprobe.core.scene_files",
 }
 
 __all__ = [
+    "CubeMap",
     "Discovery",
+    "EnvironmentFiles",
     "MergeError",
     "MergedStream",
     "ProbeAuthError",
@@ -82,6 +92,7 @@ __all__ = [
     "ProbeUnavailable",
     "Q2DecodeError",
     "Q2Tree",
+    "SHLighting",
     "decode_q2tree",
     "encode_q2tree",
     "merge_indexed",
@@ -94,7 +105,7 @@ __all__ = [
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
-        raise AttributeError(f"module 'hostlink' has no attribute {name!r}")
+        raise AttributeError(f"module 'lightprobe.hostlink' has no attribute {name!r}")
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value

@@ -1,7 +1,7 @@
 """An aiohttp client for one probe's HTTP/WebSocket API (``/api/v1``, see CONVENTIONS.md).
 
 :class:`ProbeClient` reads the status, light sets (``LightSet.from_json``), the HDR map (OpenEXR
-through ``device.core.imageio``) and the Q2-Tree encoding (:mod:`device.core.q2wire`), and follows the
+through ``lightprobe.core.imageio``) and the Q2-Tree encoding (:mod:`lightprobe.core.q2wire`), and follows the
 WebSocket stream with :meth:`ProbeClient.subscribe`: on a dropout the last light set is
 re-delivered once marked ``stale``, then the client reconnects with exponential backoff
 (``backoff_initial`` doubling up to ``backoff_max``, reset after a good connection).
@@ -27,14 +27,15 @@ from typing import TYPE_CHECKING, Any
 import aiohttp
 import numpy as np
 
-from device.core.errors import InputError, LightprobeError
-from device.core.lightset import LightSet
-from device.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree
+from lightprobe.core.errors import InputError, LightprobeError
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.q2wire import Q2DecodeError, Q2Tree, decode_q2tree
 
 if TYPE_CHECKING:
-    from device.core.sg import SGLighting
-
-    from .formats import CubeMap, EnvironmentFiles, SHLighting
+    from lightprobe.core.ktx2 import CubeMap
+    from lightprobe.core.scene_files import EnvironmentFiles
+    from lightprobe.core.sg import SGLighting
+    from lightprobe.core.sh import SHLighting
 
 __all__ = [
     "ProbeAuthError",
@@ -179,7 +180,7 @@ class ProbeClient:
     async def sh(self, convention: str = "canonical") -> SHLighting:
         """``GET /sh``: order-2 SH (all light, ambient) and the primary light in a host's
         convention (canonical, threejs, webxr, filament, unity)."""
-        from .formats import SHLighting
+        from lightprobe.core.sh import SHLighting
 
         d = await self._json("/sh", {"convention": convention})
         try:
@@ -189,7 +190,7 @@ class ProbeClient:
 
     async def sg(self) -> SGLighting:
         """``GET /sg``: the lighting as spherical Gaussians (peak and residual lobes)."""
-        from device.core.sg import SGLighting
+        from lightprobe.core.sg import SGLighting
 
         d = await self._json("/sg")
         try:
@@ -200,9 +201,7 @@ class ProbeClient:
     async def cubemap(self, size: int = 64, levels: int | None = None) -> CubeMap:
         """``GET /cubemap.ktx2`` (needs the token unless ``service.public_images``): the
         GGX-prefiltered cube map, decoded."""
-        from device.core.ktx2 import read_ktx2_cubemap
-
-        from .formats import CubeMap
+        from lightprobe.core.ktx2 import CubeMap, read_ktx2_cubemap
 
         params = {"size": str(size)} | ({"levels": str(levels)} if levels is not None else {})
         body, _, _ = await self._get("/cubemap.ktx2", params)
@@ -216,7 +215,7 @@ class ProbeClient:
     async def environment(self, kind: str = "gltf") -> EnvironmentFiles:
         """``GET /environment.gltf`` or ``/environment.usda`` (needs the token unless
         ``service.public_images``) with every file it references (glTF images, USD textures)."""
-        from .formats import EnvironmentFiles
+        from lightprobe.core.scene_files import EnvironmentFiles
 
         if kind not in ("gltf", "usd"):
             raise InputError(f"kind must be 'gltf' or 'usd', got {kind!r}", param="kind")
@@ -301,7 +300,7 @@ def _lightset(d: Any, url: str) -> LightSet:
 
 
 def _read_exr_bytes(data: bytes, url: str) -> np.ndarray:
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     fd, tmp = tempfile.mkstemp(suffix=".exr")
     try:

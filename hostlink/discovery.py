@@ -34,6 +34,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
+from lightprobe.core.mdns_txt import DEFAULT_PATH, SERVICE_TYPE, parse_txt
+
 if TYPE_CHECKING:
     from zeroconf import ServiceStateChange, Zeroconf
     from zeroconf.asyncio import AsyncServiceBrowser, AsyncZeroconf
@@ -42,7 +44,6 @@ __all__ = ["SERVICE_TYPE", "Discovery", "ProbeEvent", "ProbeInfo", "parse_addres
 
 log = logging.getLogger(__name__)
 
-SERVICE_TYPE = "_lightprobe._tcp.local."
 
 
 @dataclass(frozen=True)
@@ -89,7 +90,7 @@ class ProbeEvent:
 def _ipv4(text: str) -> str:
     import ipaddress
 
-    from device.core.errors import InputError
+    from lightprobe.core.errors import InputError
 
     try:
         return str(ipaddress.IPv4Address(text.strip()))
@@ -100,7 +101,7 @@ def _ipv4(text: str) -> str:
 
 def parse_address(text: str) -> tuple[str, int]:
     """``host:port`` (or ``http://host:port[/...]``, ``[v6]:port``) -> (host, port)."""
-    from device.core.errors import InputError
+    from lightprobe.core.errors import InputError
 
     s = text.strip()
     if "://" in s:
@@ -133,14 +134,14 @@ class Discovery:
                  token: str | None = None, liveness_s: float | None = 10.0,
                  liveness_failures: int = 2, brokers: Sequence[str] = (), mdns: bool = True,
                  mqtt_prefix: str | None = None) -> None:
-        from device.core.broker import DEFAULT_PREFIX, check_prefix, parse_broker_url
+        from lightprobe.core.mqtt_topics import DEFAULT_PREFIX, check_prefix, parse_broker_url
 
         for b in brokers:
             parse_broker_url(b, "brokers")
         self.brokers = list(brokers)
         self.mdns = bool(mdns)
         self.mqtt_prefix = check_prefix(mqtt_prefix or DEFAULT_PREFIX, "mqtt_prefix")
-        self.feeds: dict[str, Any] = {}  # broker URL -> hostlink.mqtt.BrokerFeed (after start)
+        self.feeds: dict[str, Any] = {}  # broker URL -> lightprobe.hostlink.mqtt.BrokerFeed (after start)
         self.interfaces = [_ipv4(a) for a in interfaces] if interfaces else None
         self.manual = [parse_address(a) for a in manual]
         self.manual_poll_s = float(manual_poll_s)
@@ -173,7 +174,7 @@ class Discovery:
             self._browser = AsyncServiceBrowser(self._azc.zeroconf, [SERVICE_TYPE],
                                                 handlers=[self._on_state_change])
         if self.brokers:
-            from hostlink.mqtt import BrokerFeed
+            from lightprobe.hostlink.mqtt import BrokerFeed
 
             for url in self.brokers:
                 feed = self.feeds[url] = BrokerFeed(
@@ -277,8 +278,7 @@ class Discovery:
         if not await info.async_request(self._azc.zeroconf, int(self.resolve_timeout_s * 1000)):
             log.info("discovery: cannot resolve %s", name)
             return
-        props = {k.decode("utf-8", "replace"): (v or b"").decode("utf-8", "replace")
-                 for k, v in (info.properties or {}).items()}
+        props = parse_txt(info.properties)
         if name in self._gone:
             return
         pid = props.get("id", "")
@@ -288,7 +288,7 @@ class Discovery:
             return
         await self._put(ProbeInfo(
             id=pid, name=props.get("name") or name.removesuffix("." + service_type),
-            host=addrs[0], port=int(info.port), path=props.get("path") or "/api/v1",
+            host=addrs[0], port=int(info.port), path=props.get("path") or DEFAULT_PATH,
             version=props.get("version", ""), model=props.get("model", ""),
             sampler=props.get("sampler", ""), source="mdns", service_name=name,
             seen=time.monotonic()))
@@ -329,7 +329,7 @@ class Discovery:
 
     # ---- manual addresses -----------------------------------------------------------------------
     async def _poll_manual(self) -> None:
-        from hostlink.client import ProbeClient, ProbeError
+        from lightprobe.hostlink.client import ProbeClient, ProbeError
 
         while True:
             for host, port in self.manual:

@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from device.core.errors import LightprobeError
-from device.core.lightset import LightSet
-from device.core.q2wire import Q2Tree, jitter_directions, uniq_levels
-from device.core.sphere import LUMINANCE_WEIGHTS
+from lightprobe.core.errors import LightprobeError
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.q2wire import Q2Tree, jitter_directions, uniq_levels
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
 __all__ = [
     "MergeError",
@@ -190,7 +190,7 @@ def _normalise_top_down(nodes: np.ndarray, level: np.ndarray, rgb: np.ndarray,
 def _effective_importance(tree: MergedTree, a: float, b: float, mean: bool) -> np.ndarray:
     """Step 4: ``p = L^a dw^b`` (L = the node's luminance integral, or its mean radiance when
     ``mean``; Nikodym et al. eq. 1), made monotone down the tree as ``min(p, key(parent))``
-    exactly as the sampler orders nodes (device.sampling.q2tree._kernels)."""
+    exactly as the sampler orders nodes (lightprobe.device.sampling.q2tree._kernels)."""
     level = tree.level
     dw = 4.0 * np.pi / (12.0 * 4.0 ** level)
     lum = np.maximum(tree.rgb @ LUMINANCE_WEIGHTS, 0.0)
@@ -226,7 +226,7 @@ def merge_q2trees(trees: Sequence[Q2Tree], count: int, weights: np.ndarray | Non
     """Algorithm 2 of Nikodym et al. 2013: merged lights of several Q2-Trees.
 
     Steps 1-3 (:func:`merge_tree_nodes`), 4-5 (:func:`reduce_merged_tree`), then one light per
-    leaf (step 6) at the fixed jittered point of ``device.sampling.q2tree`` (``seed``,
+    leaf (step 6) at the fixed jittered point of ``lightprobe.device.sampling.q2tree`` (``seed``,
     ``jitter_extent``; 0 = the quad's centre), carrying the leaf's rgb. As in the sampler,
     when ``12 + 3 s`` exceeds ``count`` by e in {1, 2} the e + 1 weakest children of the weakest
     cut-able node become one light (id = that node). With equal weights and complete trees this

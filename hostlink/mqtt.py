@@ -2,11 +2,11 @@
 
 A :class:`BrokerFeed` subscribes to ``<prefix>/+/status`` (retained: a host that connects late
 learns every probe at once, and a dead probe's last will says ``offline``) and, once somebody
-follows a probe's lights, to ``<prefix>/+/lights``. :class:`hostlink.discovery.Discovery` takes
-its probes from feeds (``brokers=["mqtt://host"]``) and :class:`hostlink.stream.MergedStream`
+follows a probe's lights, to ``<prefix>/+/lights``. :class:`lightprobe.hostlink.discovery.Discovery` takes
+its probes from feeds (``brokers=["mqtt://host"]``) and :class:`lightprobe.hostlink.stream.MergedStream`
 follows them through the same feed, so a host merges a building's probes across subnets with
-the same :class:`~hostlink.discovery.ProbeEvent` s and light sets as from mDNS + WebSocket.
-Topics and payloads: :mod:`device.core.broker`.
+the same :class:`~lightprobe.hostlink.discovery.ProbeEvent` s and light sets as from mDNS + WebSocket.
+Topics and payloads: :mod:`lightprobe.core.mqtt_topics`.
 
 Lights over MQTT carry no Q2-Tree (an HTTP resource): ``MergedStream(method="auto")`` merges
 MQTT-followed probes by index interpolation.
@@ -22,15 +22,15 @@ import os
 from collections.abc import Callable
 from typing import Any
 
-from device.core.broker import (
+from lightprobe.core.errors import InputError
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.mqtt_topics import (
     DEFAULT_PREFIX,
     PASSWORD_ENV,
     parse_broker_url,
     parse_status,
     probe_of_topic,
 )
-from device.core.errors import InputError
-from device.core.lightset import LightSet
 
 __all__ = ["BrokerFeed"]
 

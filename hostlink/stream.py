@@ -10,7 +10,7 @@ dropped (its last set is ``stale``), whose tree cannot be fetched, or that sent 
 
 Probes found on an MQTT broker (``source="mqtt://host"``, or a :class:`Discovery` with
 ``brokers``) are followed through the broker instead: one connection per broker for all of them
-(:class:`hostlink.mqtt.BrokerFeed`), the same light sets, no HTTP to the probe; their status
+(:class:`lightprobe.hostlink.mqtt.BrokerFeed`), the same light sets, no HTTP to the probe; their status
 turning ``offline`` (the probe's last will) removes them.
 """
 
@@ -27,10 +27,10 @@ from typing import Any
 import aiohttp
 import numpy as np
 
-from device.core.lightset import LightSet
-from hostlink.client import ProbeClient, ProbeError
-from hostlink.discovery import Discovery, ProbeInfo
-from hostlink.merge import MergeError, ProbeInput, merge_probes
+from lightprobe.core.lightset import LightSet
+from lightprobe.hostlink.client import ProbeClient, ProbeError
+from lightprobe.hostlink.discovery import Discovery, ProbeInfo
+from lightprobe.hostlink.merge import MergeError, ProbeInput, merge_probes
 
 __all__ = ["MergedStream"]
 
@@ -54,7 +54,7 @@ class MergedStream:
     index interpolation otherwise), ``"q2tree"`` or ``"index"``; ``count`` the merged light
     count (and the tree size fetched from each probe). ``ids`` restricts a discovery source to
     those probe ids (default: every probe discovered). ``q2`` passes options to
-    :func:`hostlink.merge.merge_q2trees`.
+    :func:`lightprobe.hostlink.merge.merge_q2trees`.
     """
 
     def __init__(self, source: Discovery | Sequence[str] | str, *, count: int = 256,

@@ -1,14 +1,14 @@
-"""The simulated lightprobe: a fisheye camera with ground truth, implementing drivers.base.Camera.
+"""The simulated lightprobe: a fisheye camera with ground truth, implementing lightprobe.drivers.base.Camera.
 
 Public API::
 
-    from sim.camera import SimCamera          # the Camera (open/apply/capture, truth_calibration)
-    from sim.scenarios import load_scene      # "room", "flashlight", "flicker", "switch",
+    from lightprobe.sim.camera import SimCamera          # the Camera (open/apply/capture, truth_calibration)
+    from lightprobe.sim.scenarios import load_scene      # "room", "flashlight", "flicker", "switch",
                                               # "swing", "daylight", or any equirect path
-    from sim.scene import Scene, DynamicLight # radiance over the sphere, area-correct lights
-    from sim.lens import make_lens            # KB4 fisheye, vignetting, housing ring, render matrix
-    from sim.sensor import SensorModel        # shot/read noise, response curve, 8-bit / raw
-    from sim.faults import FaultPlan          # camera.faults.inject("disconnect", duration_s=0.5)
+    from lightprobe.sim.scene import Scene, DynamicLight # radiance over the sphere, area-correct lights
+    from lightprobe.sim.lens import make_lens            # KB4 fisheye, vignetting, housing ring, render matrix
+    from lightprobe.sim.sensor import SensorModel        # shot/read noise, response curve, 8-bit / raw
+    from lightprobe.sim.faults import FaultPlan          # camera.faults.inject("disconnect", duration_s=0.5)
 
 Typical use::
 

@@ -1,8 +1,8 @@
-"""On-disk cache of the simulated lens's render matrices (:meth:`sim.lens.SimLens.render_matrix`).
+"""On-disk cache of the simulated lens's render matrices (:meth:`lightprobe.sim.lens.SimLens.render_matrix`).
 
 Building one costs about a second at VGA (point-sampled overlaps and 12 balancing sweeps); it
 depends only on the lens parameters, the equirect height and the code that builds it, so the
-file name hashes all three (the source of :mod:`sim.lens` included: an edited lens model never
+file name hashes all three (the source of :mod:`lightprobe.sim.lens` included: an edited lens model never
 reads an old matrix). Files are written atomically (temp file + rename); an unreadable one is
 rebuilt. Loading is exact: the cached CSR matrix is the one :meth:`render_matrix` returned.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.core.sparse import Csr
+from lightprobe.sim._sparse import Csr
 
 from . import lens as _lens_module
 from .lens import SimLens

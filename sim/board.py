@@ -1,13 +1,13 @@
 """Checkerboard views rendered through a known fisheye lens, for testing the calibration.
 
 Each sensor sub-pixel is unprojected to a camera ray with the true KB4 model
-(:meth:`device.core.calibration.FisheyeModel.unproject`), intersected with the board plane and shaded
+(:meth:`lightprobe.core.calibration.FisheyeModel.unproject`), intersected with the board plane and shaded
 by the checker pattern; ``supersample`` x ``supersample`` sub-pixels per pixel give
 anti-aliasing, then Gaussian noise and 8-bit quantisation. The rays are computed once per
 renderer, so a view costs one plane intersection per sub-pixel.
 
 Board geometry: ``cols`` x ``rows`` inner corners at ``(i s, j s, 0)`` in the board frame, the
-same points as :func:`calibration.fisheye.board_object_points`; the squares span
+same points as :func:`lightprobe.calibration.fisheye.board_object_points`; the squares span
 ``[-s, cols s] x [-s, rows s]`` and a white quiet zone of one square surrounds them.
 Camera frame: OpenCV (x right, y down, z along the optical axis); a pose maps board points to the
 camera, ``X_cam = R X_board + t``.
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from device.core.calibration import FisheyeModel
+from lightprobe.core.calibration import FisheyeModel
 
 if TYPE_CHECKING:
     from .lens import SimLens
@@ -191,7 +191,7 @@ class BoardSchedule:
     A deterministic list of :class:`BoardStep`: the board moves (interpolated poses) to a new
     region of the image circle, is held still, moves on; after the last step it starts over
     (``loop``) or stays. :meth:`composite` puts the board over the scene's sensor-plane radiance
-    for :class:`sim.camera.SimCamera` (``camera.show_board(schedule)``), so the camera's noise,
+    for :class:`lightprobe.sim.camera.SimCamera` (``camera.show_board(schedule)``), so the camera's noise,
     vignetting and response apply to board frames as to any other.
 
     ``white_radiance`` is the radiance of the board's white squares in the scene's unit; None

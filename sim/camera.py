@@ -1,10 +1,10 @@
-"""SimCamera: the simulated probe camera, implementing :class:`drivers.base.Camera` exactly.
+"""SimCamera: the simulated probe camera, implementing :class:`lightprobe.drivers.base.Camera` exactly.
 
 A frame is: scene truth at the frame's virtual time (light intensities averaged over the
-exposure) -> lens render (:mod:`sim.lens`; the static base map once per lens, each dynamic light
+exposure) -> lens render (:mod:`lightprobe.sim.lens`; the static base map once per lens, each dynamic light
 as its own small sensor image scaled by its intensity: the render is linear) -> vignetting ->
-sensor noise and quantisation in one compiled pass (:mod:`sim.sensor`) -> faults
-(:mod:`sim.faults`). About 10 ms of CPU per VGA frame, so the simulator costs what a camera
+sensor noise and quantisation in one compiled pass (:mod:`lightprobe.sim.sensor`) -> faults
+(:mod:`lightprobe.sim.faults`). About 10 ms of CPU per VGA frame, so the simulator costs what a camera
 costs. Heavy numpy work runs in ``asyncio.to_thread``.
 
 Clock and latency. Frame ``i`` (sequence ``i``) is exposed at virtual time ``t_i``; ``t``
@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from device.core.calibration import Calibration, LensMask, Photometric, Pose
-from drivers.base import (
+from lightprobe.core.calibration import Calibration, LensMask, Photometric, Pose
+from lightprobe.drivers.base import (
     BoardTarget,
     Camera,
     CameraDisconnected,
@@ -82,7 +82,7 @@ class SimCamera(Camera):
 
     Parameters
     ----------
-    scene : a :class:`Scene`, a scenario name or an equirect file path (``sim.scenarios``);
+    scene : a :class:`Scene`, a scenario name or an equirect file path (``lightprobe.sim.scenarios``);
         None means the static ``room`` scenario.
     seed : noise and scenario seed.
     latency_frames : frames between ``apply()`` and the first frame that shows it.
@@ -118,7 +118,7 @@ class SimCamera(Camera):
         self.realtime = bool(realtime)
         self.sensor = sensor or SensorModel()
         self.faults = FaultPlan()
-        self._board: tuple[Any, float] | None = None  # (sim.board.BoardSchedule, start time)
+        self._board: tuple[Any, float] | None = None  # (lightprobe.sim.board.BoardSchedule, start time)
         self._technician = False  # the board shown is present_board's simulated technician
         self._caps = Capabilities(exposure_range=exposure_range, gain_range=gain_range,
                                   modes=tuple(modes), has_frame_metadata=True,
@@ -161,7 +161,7 @@ class SimCamera(Camera):
         self._open = True
 
     def _warm_kernels(self) -> None:
-        from device.core.sparse import warm_kernels
+        from lightprobe.sim._sparse import warm_kernels
 
         self.sensor.expose(np.zeros((2, 2, 3), np.float32), 1e-3, 1.0, self.mode.format, self.seed, 0)
         warm_kernels()  # the render matrix's loops
@@ -362,13 +362,13 @@ class SimCamera(Camera):
 
     @property
     def board_schedule(self) -> Any:
-        """The :class:`sim.board.BoardSchedule` shown now (``show_board``), or None."""
+        """The :class:`lightprobe.sim.board.BoardSchedule` shown now (``show_board``), or None."""
         return None if self._board is None else self._board[0]
 
     def present_board(self, board: BoardTarget | None) -> bool:
         """The simulated technician (the protocol's optional capability): nobody stands in front
         of a simulated lens, so for a live calibration session a technician
-        (:meth:`sim.board.BoardSchedule.technician`) sweeps ``board`` through the image circle;
+        (:meth:`lightprobe.sim.board.BoardSchedule.technician`) sweeps ``board`` through the image circle;
         ``None`` takes it away. A schedule a test already shows (``show_board``) is kept."""
         if board is None:
             if self._technician:
@@ -388,7 +388,7 @@ class SimCamera(Camera):
         return self.truth_calibration()
 
     def show_board(self, schedule: Any) -> None:
-        """Show a technician's checkerboard (a :class:`sim.board.BoardSchedule`) over the scene
+        """Show a technician's checkerboard (a :class:`lightprobe.sim.board.BoardSchedule`) over the scene
         from the next frame on, its clock starting then; ``None`` takes it away. Frames read
         ahead before the change are dropped."""
         self._board = None if schedule is None else (schedule, self._t)

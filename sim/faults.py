@@ -3,7 +3,7 @@
 ``camera.faults.inject(kind, ...)`` arms a fault; the camera consults the plan on every
 ``capture()``. Kinds (:class:`FaultKind`):
 
-- ``capture_error``: ``capture()`` raises :class:`drivers.base.CameraError` (the frame is lost,
+- ``capture_error``: ``capture()`` raises :class:`lightprobe.drivers.base.CameraError` (the frame is lost,
   its sequence number skipped), ``count`` times.
 - ``timeout``: ``capture()`` waits its ``timeout`` and raises :class:`CaptureTimeout`, ``count``
   times (the frame is lost).

@@ -1,7 +1,7 @@
 """The simulated fisheye lens: KB4 geometry, vignetting, housing ring and the area-correct render.
 
-The lens is an OpenCV fisheye (Kannala-Brandt KB4, ``device.core.calibration.FisheyeModel``) looking
-up: camera directions go to the probe frame through ``device.core.sphere.CAMERA_TO_PROBE``. Its image
+The lens is an OpenCV fisheye (Kannala-Brandt KB4, ``lightprobe.core.calibration.FisheyeModel``) looking
+up: camera directions go to the probe frame through ``lightprobe.core.sphere.CAMERA_TO_PROBE``. Its image
 circle spans ``circle_deg`` (187 deg) and fits the sensor height (radius 236 px of 480); the
 outermost ``ring_deg`` (1 deg of polar angle) is the dark housing ring (transmission
 ``ring_transmission`` = 3%), so the clean field of view, :attr:`SimLens.fov_deg`, is
@@ -40,9 +40,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from device.core.calibration import FisheyeModel, Vignetting
-from device.core.sparse import Csr
-from device.core.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
+from lightprobe.core.calibration import FisheyeModel, Vignetting
+from lightprobe.core.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
+from lightprobe.sim._sparse import Csr
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -217,7 +217,7 @@ class SimLens:
         key = (eq_height, n, housing)
         if key in self._cache:
             return self._cache[key]
-        import scipy.sparse as sp  # building only: a frame applies the arrays (device.core.sparse)
+        import scipy.sparse as sp  # building only: a frame applies the arrays (lightprobe.sim._sparse)
 
         keep, pu, pv = self._subsamples(n)
         # Overlap matrix, chunk by chunk of sensor pixels (bounded memory in large modes)

@@ -2,8 +2,8 @@
 
 The meter runs a reader thread on the pty master; clients open the slave path
 (:attr:`SimT10A.port`) with pyserial exactly as they would ``/dev/ttyUSB0``, so the real
-``drivers.t10a`` code runs end to end. It answers command 54 (PC mode) and 10 (read measurement)
-in the frame format of ``drivers.t10a`` and refreshes its reading every ``period_s`` (500 ms on
+``lightprobe.drivers.t10a`` code runs end to end. It answers command 54 (PC mode) and 10 (read measurement)
+in the frame format of ``lightprobe.drivers.t10a`` and refreshes its reading every ``period_s`` (500 ms on
 the real meter) from the true illuminance ``lux`` with relative Gaussian noise ``noise_rel``.
 Until PC mode is set it ignores every command but 54 (the client times out).
 
@@ -28,7 +28,16 @@ from typing import Self
 
 import numpy as np
 
-from drivers.t10a import CMD_PC_MODE, CMD_READ, CRLF, ETX, STX, bcc, encode_block, make_frame
+from lightprobe.drivers.t10a import (
+    CMD_PC_MODE,
+    CMD_READ,
+    CRLF,
+    ETX,
+    STX,
+    bcc,
+    encode_block,
+    make_frame,
+)
 
 __all__ = ["FAULTS", "SimT10A"]
 

@@ -1,9 +1,9 @@
 """The simulator's camera plugins (entry points of the ``lightprobe.cameras`` group).
 
-``--camera sim`` is :class:`sim.camera.SimCamera` on a scene (``scene``: a scenario name or an
+``--camera sim`` is :class:`lightprobe.sim.camera.SimCamera` on a scene (``scene``: a scenario name or an
 equirect map path, default ``flashlight``; ``cache_dir``: where its lens matrices are kept);
-``--camera v4l2-fake`` is the real V4L2 driver over :class:`sim.v4l2_fake.FakeV4L2Node`, a fake
-UVC kernel. Production code never imports this module: ``drivers.discovery.open_camera`` finds
+``--camera v4l2-fake`` is the real V4L2 driver over :class:`lightprobe.sim.v4l2_fake.FakeV4L2Node`, a fake
+UVC kernel. Production code never imports this module: ``lightprobe.drivers.discovery.open_camera`` finds
 it through ``pyproject.toml``'s entry points when a user names the kind.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from drivers.base import Camera
+from lightprobe.drivers.base import Camera
 
 __all__ = ["fake_v4l2_camera", "sim_camera"]
 

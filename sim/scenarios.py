@@ -1,6 +1,6 @@
 """Named scenarios: a base room map plus dynamic lights, deterministic for a seed.
 
-``load_scene(name_or_path, *, seed=0)`` returns a :class:`sim.scene.Scene`:
+``load_scene(name_or_path, *, seed=0)`` returns a :class:`lightprobe.sim.scene.Scene`:
 
 ========== =================================================================================
 room       the base map alone (static).
@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.core.errors import InputError
-from device.core.sphere import directions_from_angles, equirect_directions
+from lightprobe.core.errors import InputError
+from lightprobe.core.sphere import directions_from_angles, equirect_directions
 
 from .scene import DynamicLight, Scene
 

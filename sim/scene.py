@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.core.imageio import read_hdr_image
-from device.core.sphere import (
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.sphere import (
     angles_from_directions,
     equirect_integral,
     equirect_row_solid_angle,
@@ -80,7 +80,7 @@ def rasterize_disc(h: int, direction: np.ndarray, radius_rad: float, *, max_sub:
     Returns
     -------
     rows, cols : int64 pixel indices; frac : float64 covered fraction in (0, 1].
-    The cap's integral is ``sum(frac * Omega_pixel)`` (Omega exact, device.core.sphere); it matches
+    The cap's integral is ``sum(frac * Omega_pixel)`` (Omega exact, lightprobe.core.sphere); it matches
     ``2 pi (1 - cos radius)`` to within 0.15% for radii from 0.1 deg to 60 deg at H = 512.
     """
     d = np.asarray(direction, dtype=np.float64)
@@ -176,7 +176,7 @@ class Scene:
     def from_file(cls, path: str | os.PathLike[str], *, scale: float = 1.0,
                   lights: list[DynamicLight] | None = None, name: str | None = None) -> Scene:
         """A scene from an equirect ``.hdr`` / ``.exr`` (InputError naming the file if bad)."""
-        from device.core.errors import InputError
+        from lightprobe.core.errors import InputError
 
         img = read_hdr_image(path)
         if img.shape[1] != 2 * img.shape[0]:

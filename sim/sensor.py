@@ -51,8 +51,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from device.core.calibration import Response
-from drivers.base import PixelFormat
+from lightprobe.core.calibration import Response
+from lightprobe.drivers.base import PixelFormat
 
 __all__ = ["ResponseCurve", "SensorModel", "raw_levels"]
 

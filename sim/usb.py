@@ -21,7 +21,7 @@ interface look bound to uvcvideo (``is_kernel_driver_active`` True, claiming it 
 16 / LIBUSB_ERROR_BUSY); ``unplug()`` makes every transfer fail with errno 19 (LIBUSB_ERROR_NO_DEVICE)
 and hides the device from enumeration; ``replug()`` brings it back with controls at their defaults.
 
-:class:`SimUvcFrames` is a frame source for ``drivers.uvc.UvcCamera``: it renders the fixed ramp
+:class:`SimUvcFrames` is a frame source for ``lightprobe.drivers.uvc.UvcCamera``: it renders the fixed ramp
 scene with the exposure and gain the device's sensor is using (a SET_CUR lands
 ``latency_frames`` frames later), because frames never travel over this control path.
 Importing this module does nothing.
@@ -41,8 +41,8 @@ import numpy as np
 import usb.backend
 import usb.core
 
-from drivers.base import Mode, PixelFormat
-from sim.v4l2_fake import sim_scene
+from lightprobe.drivers.base import Mode, PixelFormat
+from lightprobe.sim.v4l2_fake import sim_scene
 
 __all__ = ["EXTENSION_GUID", "SimUsbBackend", "SimUvcDevice", "SimUvcFrames"]
 
@@ -313,10 +313,10 @@ class SimUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
 
 
 class SimUvcFrames:
-    """Frames for ``drivers.uvc.UvcCamera`` from a :class:`SimUvcDevice`'s sensor state.
+    """Frames for ``lightprobe.drivers.uvc.UvcCamera`` from a :class:`SimUvcDevice`'s sensor state.
 
     ``fps`` paces frames (``asyncio.sleep``); timestamps are CLOCK_MONOTONIC at render time.
-    The picture is the ramp of ``sim.v4l2_fake.sim_scene`` through a gamma-2.2 response.
+    The picture is the ramp of ``lightprobe.sim.v4l2_fake.sim_scene`` through a gamma-2.2 response.
     """
 
     def __init__(self, device: SimUvcDevice, *, width: int = 320, height: int = 240, fps: float = 120.0) -> None:

@@ -2,7 +2,7 @@
 
 It stands where the kernel stands. It decodes the ioctl number (``_IOC`` fields) and the struct
 *bytes* with its own offset tables, written from the kernel's videodev2.h independently of
-``drivers.v4l2._structs`` (so a wrong ctypes layout is caught, for the LP64 and the ARM EABI
+``lightprobe.drivers.v4l2._structs`` (so a wrong ctypes layout is caught, for the LP64 and the ARM EABI
 ILP32 layouts alike), keeps the device state a real driver keeps (format, buffers, queue,
 streaming, controls), produces frames on a thread while streaming, and records every call in
 ``calls`` and every misuse in ``violations`` (the kernel would answer EINVAL/EBUSY; we also keep
@@ -32,11 +32,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from device.core.calibration import Calibration, FisheyeModel, Pose, Response
-from drivers.base import CameraDisconnected, CameraUnavailable
-from drivers.v4l2._ioctl import IoctlError
-from drivers.v4l2._structs import ABI64, V4L2Abi
-from drivers.v4l2.camera import V4L2Camera
+from lightprobe.core.calibration import Calibration, FisheyeModel, Pose, Response
+from lightprobe.drivers.base import CameraDisconnected, CameraUnavailable
+from lightprobe.drivers.v4l2._ioctl import IoctlError
+from lightprobe.drivers.v4l2._structs import ABI64, V4L2Abi
+from lightprobe.drivers.v4l2.camera import V4L2Camera
 
 __all__ = ["FakeUVCCamera", "FakeV4L2Device", "FakeV4L2Node", "fake_uvc_calibration", "rgb_to_yuyv", "sim_scene"]
 
@@ -149,7 +149,7 @@ class FakeV4L2Node:
 
 
 class FakeV4L2Device:
-    """One open file on the fake node; implements :class:`drivers.v4l2._ioctl.IoctlTransport`."""
+    """One open file on the fake node; implements :class:`lightprobe.drivers.v4l2._ioctl.IoctlTransport`."""
 
     def __init__(self, node: FakeV4L2Node) -> None:
         self.node, self.path, self.abi = node, node.path, node.abi

@@ -6,6 +6,15 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+# Hypothesis: one profile for the suite. In CI (``CI`` set, as .ci/run runs) the examples are
+# derandomized, so a run is the same run every time; elsewhere each run explores new ones
+# (``HYPOTHESIS_PROFILE=ci`` reproduces CI's). No per-example deadline: a wall-clock limit would
+# fail a loaded machine, not a wrong result.
+settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True)
+settings.register_profile("dev", deadline=None, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "dev"))
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = Path(os.environ.get("LIGHTPROBE_SHARED_DATA", ROOT.parent / "shared" / "data"))

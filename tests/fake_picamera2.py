@@ -1,7 +1,7 @@
 """A fake ``picamera2.Picamera2`` for tests (picamera2 only installs on a Raspberry Pi).
 
 A mock at the edge of code we do not own: it mimics the parts of picamera2's API that
-``drivers.libcamera`` uses (camera_controls, sensor_modes, camera_properties,
+``lightprobe.drivers.libcamera`` uses (camera_controls, sensor_modes, camera_properties,
 create_still_configuration, configure, start/stop/close, set_controls, capture_request ->
 request.get_metadata / make_array / release, capture_metadata) and libcamera's behaviour that
 matters: a control change lands ``latency`` frames after set_controls, exposure is quantised to
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.v4l2.convert import mosaic
+from lightprobe.drivers.v4l2.convert import mosaic
 
 
 class FakeRequest:

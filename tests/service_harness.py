@@ -1,6 +1,6 @@
 """Test harness of the probe service: the real service on a real aiohttp server on 127.0.0.1,
 running the real pipeline on the simulated camera, wired by the same bootstrap as ``lightprobe
-serve`` (``device.cli.bootstrap``: ``--camera sim``, calibration from the state dir's store or
+serve`` (``lightprobe.device.bootstrap``: ``--camera sim``, calibration from the state dir's store or
 the simulator's own).
 
 Projection tables and the simulator's lens matrices are built by the real code on first use and
@@ -52,7 +52,7 @@ def state_dir(root: Path) -> Path:
 def sim_factories(root: Path, probe_id: str = "probetest0001", scene: str = SCENE) -> tuple[Any, Any]:
     """(make_camera, make_pipeline) of ``lightprobe serve --camera sim --scene SCENE`` with its
     state in ``root/state``."""
-    from device.cli.bootstrap import camera_factory, pipeline_factory
+    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
 
     state = state_dir(root)
     return camera_factory("sim", scene, state / "cache"), pipeline_factory(state, probe_id)
@@ -77,7 +77,7 @@ class RunningService:
 
     @property
     def state(self) -> Any:
-        from device.service.state import STATE
+        from lightprobe.device.service.state import STATE
 
         return self.app[STATE]
 
@@ -88,7 +88,7 @@ class RunningService:
 
 def service_config(tmp_path: Any, **tables: dict[str, Any]) -> Any:
     """A config (file in tmp_path) with mDNS off unless asked, and the given overrides."""
-    from device.service.config import ServiceConfig
+    from lightprobe.device.service.config import ServiceConfig
 
     patch: dict[str, dict[str, Any]] = {"mdns": {"enabled": False}, "pipeline": {"fps": 20.0, "light_count": 64}}
     for t, kv in tables.items():
@@ -113,7 +113,7 @@ class running_service:
     async def __aenter__(self) -> RunningService:
         from aiohttp import web
 
-        from device.service.app import create_app
+        from lightprobe.device.service.app import create_app
 
         port = free_port()
         app = create_app(self.cfg, self.make_camera, self.make_pipeline, token=self.token,
@@ -130,7 +130,7 @@ class running_service:
 
 def _serve(argv: list[str]) -> int:
     """``lightprobe serve`` with the session cache linked into ``--state-dir``."""
-    from device.cli.serve import main
+    from lightprobe.cli.serve import main
 
     if "--state-dir" in argv:
         state = Path(argv[argv.index("--state-dir") + 1])

@@ -1,4 +1,4 @@
-"""Burst capture (device.burst): adaptive bracketing and verified capture on the simulated probe."""
+"""Burst capture (lightprobe.device.burst): adaptive bracketing and verified capture on the simulated probe."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from device.burst import (
+from lightprobe.device.burst import (
     BracketPlanner,
     capture_burst,
     exposure_rates,
@@ -16,8 +16,8 @@ from device.burst import (
     order_exposures,
     rates_from_frame,
 )
-from drivers.base import Capabilities, CaptureTimeout, Controls, Frame, PixelFormat
-from sim.camera import SimCamera
+from lightprobe.drivers.base import Capabilities, CaptureTimeout, Controls, Frame, PixelFormat
+from lightprobe.sim.camera import SimCamera
 
 RANGE = (1e-5, 1.0)
 

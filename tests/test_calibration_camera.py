@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from calibration.photometric import upper_irradiance
-from calibration.response import compare_inverse
-from calibration.vignetting import max_relative_error
-from device.cli.calibrate import main
-from device.core.calibration import Calibration
-from sim.camera import SimCamera
-from sim.luxmeter import SimT10A
+from lightprobe.calibration.photometric import upper_irradiance
+from lightprobe.calibration.response import compare_inverse
+from lightprobe.calibration.vignetting import max_relative_error
+from lightprobe.cli.calibrate import main
+from lightprobe.core.calibration import Calibration
+from lightprobe.sim.camera import SimCamera
+from lightprobe.sim.luxmeter import SimT10A
 
 
 def load(path: Path) -> Calibration:
@@ -43,8 +43,8 @@ def test_response_from_the_probes_own_bracket(tmp_path: Path, method: str, tol_m
 def test_raw_mode_gets_a_linearity_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                          capsys: pytest.CaptureFixture[str]) -> None:
     """A camera in a raw mode: the bracket is checked for linearity and a linear response stored."""
-    import device.cli.bootstrap as bootstrap
-    from drivers.base import Mode, PixelFormat
+    import lightprobe.device.bootstrap as bootstrap
+    from lightprobe.drivers.base import Mode, PixelFormat
 
     def raw_camera(spec: str, scene: str | None = None) -> SimCamera:
         cam = SimCamera("room", seed=3)

@@ -13,15 +13,15 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.fisheye import (
+from lightprobe.calibration.fisheye import (
     View,
     board_object_points,
     calibrate_views,
     detect_board,
     parse_board,
 )
-from device.cli.calibrate import main as calibrate_main
-from device.core.calibration import Calibration, Photometric
+from lightprobe.cli.calibrate import main as calibrate_main
+from lightprobe.core.calibration import Calibration, Photometric
 
 ROOT = Path(__file__).resolve().parent.parent
 REAL = "fisheye_calibration/lim_8x6_27.5mm"
@@ -90,7 +90,7 @@ def test_corrupted_view_is_rejected_and_too_few_views_fail(real_views: list[View
 
 
 def _run(*argv: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "device.cli", "calibrate", *argv], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "lightprobe.cli", "calibrate", *argv], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
 
 

@@ -1,5 +1,5 @@
 """Fisheye calibration on simulated board views rendered through known KB4 lenses
-(sim.board), and the live routine fed by a frame source."""
+(lightprobe.sim.board), and the live routine fed by a frame source."""
 
 from __future__ import annotations
 
@@ -9,11 +9,25 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.fisheye import BoardSpec, View, board_object_points, calibrate_views, detect_board
-from calibration.live import LiveFisheyeCalibration
-from device.core.calibration import FisheyeModel
-from drivers.base import Camera, Capabilities, Controls, Frame, FrameMetadata, Mode, PixelFormat
-from sim.board import BoardRenderer, random_pose, true_corners
+from lightprobe.calibration.fisheye import (
+    BoardSpec,
+    View,
+    board_object_points,
+    calibrate_views,
+    detect_board,
+)
+from lightprobe.calibration.live import LiveFisheyeCalibration
+from lightprobe.core.calibration import FisheyeModel
+from lightprobe.drivers.base import (
+    Camera,
+    Capabilities,
+    Controls,
+    Frame,
+    FrameMetadata,
+    Mode,
+    PixelFormat,
+)
+from lightprobe.sim.board import BoardRenderer, random_pose, true_corners
 
 BOARD = BoardSpec(9, 6, 0.04)
 
@@ -220,7 +234,7 @@ async def test_live_run_drives_a_camera() -> None:
 
 
 def test_board_schedule_holds_moves_and_loops() -> None:
-    from sim.board import BoardSchedule, interpolate_pose
+    from lightprobe.sim.board import BoardSchedule, interpolate_pose
 
     sch = BoardSchedule.technician(hold_s=1.0, move_s=0.5)
     assert len(sch.steps) == 23
@@ -246,9 +260,9 @@ def test_board_schedule_holds_moves_and_loops() -> None:
 async def test_sim_camera_shows_the_board_through_its_lens() -> None:
     """The simulator's own frames carry the board at the scheduled pose: detected corners lie
     where the true lens puts them; show_board(None) takes it away."""
-    from calibration.live import frame_to_gray
-    from sim.board import BoardSchedule
-    from sim.camera import SimCamera
+    from lightprobe.calibration.live import frame_to_gray
+    from lightprobe.sim.board import BoardSchedule
+    from lightprobe.sim.camera import SimCamera
 
     cam = SimCamera("flashlight")
     truth = cam.truth_calibration().fisheye
@@ -273,7 +287,7 @@ def test_bundle_adjustment_and_readmission_recover_the_true_model() -> None:
     start, exact corners lead back to the true lens and poses; a view rejected as
     ill-conditioned that agrees with the solved model joins, one that does not stays out (boards
     within 90 degrees: cv2.fisheye.projectPoints folds points behind the lens forward)."""
-    from calibration.fisheye import _bundle_adjust, _readmit
+    from lightprobe.calibration.fisheye import _bundle_adjust, _readmit
 
     true = lens(190.0)
     rng = np.random.default_rng(5)

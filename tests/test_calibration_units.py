@@ -1,29 +1,35 @@
 """Response curve, raw linearity, vignetting, lens mask and mounting pose against the
-simulator's ground truth (sim.camera.SimCamera) and synthetic captures with known truth."""
+simulator's ground truth (lightprobe.sim.camera.SimCamera) and synthetic captures with known truth."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calibration.mask import fill_masked, find_mask, mask_image
-from calibration.pose import pose_from_angles, pose_from_board, rotation_angle_deg
-from calibration.response import (
+from lightprobe.calibration.mask import fill_masked, find_mask, mask_image
+from lightprobe.calibration.pose import pose_from_angles, pose_from_board, rotation_angle_deg
+from lightprobe.calibration.response import (
     capture_bracket,
     compare_inverse,
     linearity_check,
     response_from_stack,
 )
-from calibration.vignetting import (
+from lightprobe.calibration.vignetting import (
     max_relative_error,
     vignetting_from_flat_field,
     vignetting_from_patches,
 )
-from device.core.calibration import Calibration, FisheyeModel, LensMask, Vignetting, repair_inverse
-from device.core.sphere import CAMERA_TO_PROBE
-from drivers.base import Mode, PixelFormat
-from sim.camera import SimCamera
-from sim.scene import Scene
+from lightprobe.core.calibration import (
+    Calibration,
+    FisheyeModel,
+    LensMask,
+    Vignetting,
+    repair_inverse,
+)
+from lightprobe.core.sphere import CAMERA_TO_PROBE
+from lightprobe.drivers.base import Mode, PixelFormat
+from lightprobe.sim.camera import SimCamera
+from lightprobe.sim.scene import Scene
 
 EXPOSURES = [1 / 1000 * 2**i for i in range(10)]  # 1 ms .. 0.512 s, 1 stop apart: the room at S = 1e4
 
@@ -200,13 +206,13 @@ def test_pose_from_board_on_floor_recovers_rotation() -> None:
 
 def test_cli_pose_from_rendered_floor_board(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """``calibrate pose --board-image``: a board rendered on the floor below a downward-looking
-    probe (sim.board through the calibrated lens) gives the true mounting rotation."""
+    probe (lightprobe.sim.board through the calibrated lens) gives the true mounting rotation."""
     import json
 
     import cv2
 
-    from device.cli.calibrate import main as calibrate_main
-    from sim.board import BoardPose, BoardRenderer
+    from lightprobe.cli.calibrate import main as calibrate_main
+    from lightprobe.sim.board import BoardPose, BoardRenderer
 
     model = FisheyeModel((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),
                          np.array([0.03, -0.01, 0.004, -0.0008]), fov_deg=190.0)

@@ -1,4 +1,4 @@
-"""``lightprobe cameras`` and drivers.discovery: listing, specs, auto choice, clear errors."""
+"""``lightprobe cameras`` and lightprobe.drivers.discovery: listing, specs, auto choice, clear errors."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from device.core.errors import InputError
-from drivers.base import CameraUnavailable
-from drivers.cli import main
-from drivers.discovery import (
+from lightprobe.cli.cameras import main
+from lightprobe.core.errors import InputError
+from lightprobe.drivers.base import CameraUnavailable
+from lightprobe.drivers.discovery import (
     NoCameraFound,
     find_v4l2_node_for_usb,
     list_cameras,
@@ -22,8 +22,8 @@ from drivers.discovery import (
     probe_v4l2,
     usb_ids_of_node,
 )
-from sim.usb import SimUsbBackend, SimUvcDevice
-from sim.v4l2_fake import FakeV4L2Node
+from lightprobe.sim.usb import SimUsbBackend, SimUvcDevice
+from lightprobe.sim.v4l2_fake import FakeV4L2Node
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -84,11 +84,11 @@ def test_check_fake_v4l2_camera_reports_a_frame(capsys: pytest.CaptureFixture[st
 
 def test_entry_point_exit_code_and_help() -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-m", "device.cli", "cameras", "--check", "v4l2:/dev/v4l/by-id/none"],
+    r = subprocess.run([sys.executable, "-m", "lightprobe.cli", "cameras", "--check", "v4l2:/dev/v4l/by-id/none"],
                        capture_output=True, text=True, cwd=ROOT, env=env, timeout=60, check=False)  # fmt: skip
     assert r.returncode == 2
     assert r.stderr.startswith("lightprobe: error: --camera v4l2:/dev/v4l/by-id/none")
-    h = subprocess.run([sys.executable, "-m", "device.cli", "cameras", "--help"],
+    h = subprocess.run([sys.executable, "-m", "lightprobe.cli", "cameras", "--help"],
                        capture_output=True, text=True, cwd=ROOT, env=env, timeout=60, check=False)  # fmt: skip
     assert h.returncode == 0
     assert "--check" in h.stdout
@@ -110,7 +110,7 @@ def test_auto_never_picks_the_simulator(tmp_path: Path) -> None:
 def test_cameras_check_auto_without_hardware_exits_2(tmp_path: Path) -> None:
     if list_cameras(include_plugins=False):
         pytest.skip("this machine has camera hardware")
-    r = subprocess.run([sys.executable, "-m", "device.cli", "cameras", "--check", "auto"],
+    r = subprocess.run([sys.executable, "-m", "lightprobe.cli", "cameras", "--check", "auto"],
                        capture_output=True, text=True, cwd=ROOT, timeout=60, check=False)  # fmt: skip
     assert r.returncode == 2
     assert "no camera hardware found" in r.stderr

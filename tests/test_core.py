@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from device.core import healpix as H
-from device.core import sphere as S
-from device.core.errors import InputError
-from device.core.imageio import read_exr_header, read_hdr_image, write_exr
+from lightprobe.core import healpix as H
+from lightprobe.core import sphere as S
+from lightprobe.core.errors import InputError
+from lightprobe.core.imageio import read_exr_header, read_hdr_image, write_exr
 
 
 def test_direction_convention_matches_conventions_md():

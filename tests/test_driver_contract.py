@@ -1,9 +1,9 @@
-"""The camera contract (drivers.base.Camera), run against every backend we can run here.
+"""The camera contract (lightprobe.drivers.base.Camera), run against every backend we can run here.
 
-Backends: the simulator (sim.camera.SimCamera); UVC controls through the REAL pyusb code path on
-a simulated USB device (sim.usb) composed with simulated frames (drivers.uvc.UvcCamera: frames do
+Backends: the simulator (lightprobe.sim.camera.SimCamera); UVC controls through the REAL pyusb code path on
+a simulated USB device (lightprobe.sim.usb) composed with simulated frames (lightprobe.drivers.uvc.UvcCamera: frames do
 not travel over UVC control requests, see drivers/uvc.py); the V4L2 camera on the fake ioctl
-endpoint (sim.v4l2_fake) in both the LP64 and the 32-bit ARM struct layouts; libcamera through
+endpoint (lightprobe.sim.v4l2_fake) in both the LP64 and the 32-bit ARM struct layouts; libcamera through
 a fake picamera2 (tests/fake_picamera2.py); and real hardware when LIGHTPROBE_HIL_CAMERA names a
 ``--camera`` spec (e.g. ``v4l2:/dev/v4l/by-id/usb-...-video-index0``, ``libcamera``), marked
 ``hardware`` and skipped otherwise.
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from fake_picamera2 import FakePicamera2
 
-from drivers.base import (
+from lightprobe.drivers.base import (
     Camera,
     CameraError,
     ControlNotSupported,
@@ -29,19 +29,19 @@ from drivers.base import (
     Mode,
     PixelFormat,
 )
-from drivers.discovery import open_camera
-from drivers.libcamera import Picamera2Camera
-from drivers.uvc import UvcCamera, find_uvc_devices
-from drivers.v4l2._structs import ABI32, ABI64
-from drivers.v4l2.camera import V4L2Camera
-from sim.usb import SimUsbBackend, SimUvcDevice, SimUvcFrames
-from sim.v4l2_fake import FakeV4L2Node
+from lightprobe.drivers.discovery import open_camera
+from lightprobe.drivers.libcamera import Picamera2Camera
+from lightprobe.drivers.uvc import UvcCamera, find_uvc_devices
+from lightprobe.drivers.v4l2._structs import ABI32, ABI64
+from lightprobe.drivers.v4l2.camera import V4L2Camera
+from lightprobe.sim.usb import SimUsbBackend, SimUvcDevice, SimUvcFrames
+from lightprobe.sim.v4l2_fake import FakeV4L2Node
 
 HIL = os.environ.get("LIGHTPROBE_HIL_CAMERA", "")
 
 
 def _sim() -> Camera:
-    from sim.camera import SimCamera
+    from lightprobe.sim.camera import SimCamera
 
     return SimCamera(seed=1)
 

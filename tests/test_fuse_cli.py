@@ -12,10 +12,10 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from device.cli import main
-from device.core.calibration import Calibration, Response
-from device.hdr import FusionSettings
-from device.hdr.cli import fit_response
+from lightprobe.cli import main
+from lightprobe.core.calibration import Calibration, Response
+from lightprobe.device.hdr import FusionSettings
+from lightprobe.device.hdr.stack import fit_response
 
 STACK = "exposure_stacks/piccante_room_lamp"
 
@@ -241,7 +241,7 @@ def test_registration_recovers_known_shifts_of_a_real_stack(stack: tuple[list[Pa
     threshold bitmaps find every move back to the pixel, relative to the reference frame, in the
     frames with mid-tones to register (the two shortest are nearly black: they take their
     neighbour's shift)."""
-    from device.hdr.align import MIN_MIDTONE, apply_shifts, stack_shifts
+    from lightprobe.device.hdr.align import MIN_MIDTONE, apply_shifts, stack_shifts
 
     images, _, _ = stack
     frames = [cv2.imread(str(p))[..., ::-1] for p in images]
@@ -266,8 +266,8 @@ def test_deghosting_with_a_measured_response_drops_a_moving_lamp_only(
     """A patch pasted into one exposure of the real (static) stack, bright (a lamp on during that
     exposure only) or dark (a lamp off, a passer-by): with the stack's measured scatter the
     deghosting drops exactly that patch's samples and keeps the rest."""
-    from device.hdr.cli import fuse_report, read_stack
-    from device.hdr.fusion import fuse
+    from lightprobe.device.hdr.fusion import fuse
+    from lightprobe.device.hdr.stack import fuse_report, read_stack
 
     images, times, _ = stack
     frames = read_stack(images)

@@ -1,4 +1,4 @@
-"""HDR fusion (device.hdr.fusion): accuracy on synthetic stacks, weights, ghosts, degenerate input."""
+"""HDR fusion (lightprobe.device.hdr.fusion): accuracy on synthetic stacks, weights, ghosts, degenerate input."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.core.calibration import Response, repair_inverse
-from device.core.errors import InputError
-from device.hdr import FusionSettings, build_luts, fuse, fuse_frames, fuse_raw
-from drivers.base import Frame, FrameMetadata, PixelFormat
+from lightprobe.core.calibration import Response, repair_inverse
+from lightprobe.core.errors import InputError
+from lightprobe.device.hdr import FusionSettings, build_luts, fuse, fuse_frames, fuse_raw
+from lightprobe.drivers.base import Frame, FrameMetadata, PixelFormat
 
 GAMMA = 2.2
 FULL_WELL = 6000.0

@@ -1,5 +1,5 @@
 """HDR on real photographs (issue 13): every stack in ``../shared/data/exposure_stacks``, read
-from there, scored against OpenCV's Debevec and Robertson in the same run (``bench.hdr``).
+from there, scored against OpenCV's Debevec and Robertson in the same run (``lightprobe.bench.hdr``).
 
 The metric needs no ground truth: the even and the odd exposures of a static stack fused apart
 must give the same radiance (median |d log L| after one global scale). Our fusion estimates its
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.hdr import run_stacks
+from lightprobe.bench.hdr import run_stacks
 
 pytestmark = pytest.mark.slow
 TRIPOD = ("piccante_room_lamp", "makehdr_room_window")  # static, registered to <= 1 px
@@ -45,7 +45,7 @@ def test_subset_consistency_beats_opencv(scores: dict[str, Any]) -> None:
 
 
 def test_effective_exposures_make_the_subsets_agree(scores: dict[str, Any]) -> None:
-    """Fused with the exposures the pictures show (``calibration.response.fit_stack``) rather than
+    """Fused with the exposures the pictures show (``lightprobe.calibration.response.fit_stack``) rather than
     the nominal labels, the tripod stacks' subsets agree better (makehdr 0.0102 -> 0.0094,
     piccante 0.027 -> 0.022 when this was written), with corrections of a few percent."""
     for name in TRIPOD:
@@ -71,7 +71,7 @@ def test_agrees_with_opencv_and_keeps_the_dynamic_range(scores: dict[str, Any]) 
 
 def test_registering_a_hand_held_stack_makes_its_subsets_agree(scores: dict[str, Any]) -> None:
     """A stack misregistered by 2 px or more (pku: 2-5 px) is registered by ``--align``
-    (``device.hdr.align``): our even and odd fusions of the registered frames agree within 0.7 x
+    (``lightprobe.device.hdr.align``): our even and odd fusions of the registered frames agree within 0.7 x
     of the unregistered ones and within 0.8 x of OpenCV Debevec's on the same registered frames,
     and ours agrees better with OpenCV's merge than before. The tripod stacks move by <= 1 px."""
     moved = {n: max(max(abs(v) for v in sh) for sh in s["shifts"]) for n, s in scores.items()}

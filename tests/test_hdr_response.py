@@ -1,12 +1,12 @@
-"""Debevec-Malik response recovery (calibration.response, the one solver)."""
+"""Debevec-Malik response recovery (lightprobe.calibration.response, the one solver)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calibration.response import fit_stack, pair_bins, response_from_stack, solve_debevec
-from device.core.errors import InputError
+from lightprobe.calibration.response import fit_stack, pair_bins, response_from_stack, solve_debevec
+from lightprobe.core.errors import InputError
 
 
 def _stack(gamma: tuple[float, float, float], seed: int = 0) -> tuple[list[np.ndarray], list[float]]:
@@ -135,8 +135,8 @@ def test_scatter_core_is_the_typical_sample_spread_and_rms_holds_the_tails() -> 
     """A bracket whose samples scatter log-normally (sigma 0.03) with one in twenty thrown far off
     (a leaf that moved, sigma 0.5): ``log_sigma_core`` finds the typical spread, ``log_sigma`` (the
     rms) the tails too; both survive the JSON round trip."""
-    from calibration.response import code_scatter
-    from device.core.calibration import Response
+    from lightprobe.calibration.response import code_scatter
+    from lightprobe.core.calibration import Response
 
     rng = np.random.default_rng(5)
     x = np.exp(rng.uniform(np.log(2e-3), np.log(1.0), (200, 240, 3)))

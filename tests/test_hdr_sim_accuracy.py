@@ -1,6 +1,6 @@
 """Acceptance of issue 2 (HDR accuracy) against the simulator's ground truth.
 
-VGA frames from ``sim.camera.SimCamera`` (shot + read noise as configured by the simulator), the
+VGA frames from ``lightprobe.sim.camera.SimCamera`` (shot + read noise as configured by the simulator), the
 bracket the planner chooses (a metering sweep, then one planned burst from the sweep's fusion),
 fused with the truth calibration's response; fused x photometric scale / vignetting is compared
 with the simulator's noise-free sensor-plane radiance over the clean field of view, on pixels not
@@ -18,11 +18,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.hdr import simulator_accuracy
-from device.burst import BracketPlanner, capture_burst, exposure_rates, field_of_view_mask
-from device.hdr import fuse_frames
-from drivers.base import PixelFormat
-from sim.camera import SimCamera
+from lightprobe.bench.hdr import simulator_accuracy
+from lightprobe.device.burst import (
+    BracketPlanner,
+    capture_burst,
+    exposure_rates,
+    field_of_view_mask,
+)
+from lightprobe.device.hdr import fuse_frames
+from lightprobe.drivers.base import PixelFormat
+from lightprobe.sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow
 
@@ -77,7 +82,7 @@ async def _flashlight(shared_data: Path) -> dict[str, Any]:
     """A flashlight moving ~45 deg/s while the planned burst is captured."""
     import scipy.ndimage as ndi
 
-    from device.hdr import FusionSettings
+    from lightprobe.device.hdr import FusionSettings
 
     cam = SimCamera("flashlight", seed=5, shared_data=shared_data)
     async with cam:

@@ -1,7 +1,7 @@
 """Host formats (#16): SH in each engine's convention, the primary light, GGX cube maps, KTX2.
 
 The host shader formulas below are written from the hosts' own sources (``../shared/NOTES.md``
-"Host formats"), independently of ``device.core.sh``: a convention that is off in order, sign,
+"Host formats"), independently of ``lightprobe.core.sh``: a convention that is off in order, sign,
 handedness or normalisation fails the 0.5% bound by far (checked: the wrong variants below).
 """
 
@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.environment import EnvironmentEstimator
-from device.core.imageio import read_hdr_image
-from device.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
-from device.core.primary import ambient_map, extract_primary
-from device.core.sh import SHProjector, irradiance, project, to_convention
-from device.core.sphere import coarse_equirect, equirect_row_solid_angle
-from device.formats.cubemap import FACES, CubemapFilter, face_directions, sample_equirect
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
+from lightprobe.core.sh import SHProjector, irradiance, project, to_convention
+from lightprobe.core.sphere import coarse_equirect, equirect_row_solid_angle
+from lightprobe.device.formats.cubemap import FACES, CubemapFilter, face_directions, sample_equirect
+from lightprobe.device.formats.primary import ambient_map, extract_primary
+from lightprobe.device.formats.sh_primary import EnvironmentEstimator
 
 ENVMAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
            "dikhololo_night_1k.hdr", "interior_blender.exr"]
@@ -191,7 +191,7 @@ def test_ambient_plus_primary_reproduces_the_irradiance(shared_data: Path, name:
 
 
 def test_primary_light_of_the_simulated_sun_points_at_it_and_keeps_energy(shared_data: Path) -> None:
-    from sim.scenarios import load_scene
+    from lightprobe.sim.scenarios import load_scene
 
     scene = load_scene("daylight", shared_data=shared_data)
     m = coarse_equirect(np.asarray(scene.radiance_equirect(10.0), np.float32), 256)
@@ -308,7 +308,7 @@ def test_mip0_is_the_map_itself_and_rough_mips_conserve_a_uniform_sky() -> None:
 
 
 def test_cubemap_of_bad_input() -> None:
-    from device.core.errors import InputError
+    from lightprobe.core.errors import InputError
 
     with pytest.raises(InputError, match="power of two"):
         CubemapFilter(48)

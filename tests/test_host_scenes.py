@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from service_harness import running_service, service_config
 
-from device.core.environment import EnvironmentEstimator
-from device.core.imageio import read_hdr_image
-from device.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
-from device.core.primary import ambient_map
-from device.core.sphere import coarse_equirect
-from device.formats.cubemap import CubemapFilter
-from device.formats.scene import gltf_environment, usd_environment
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.ktx2 import ktx2_cubemap_bytes, read_ktx2_cubemap
+from lightprobe.core.sphere import coarse_equirect
+from lightprobe.device.formats.cubemap import CubemapFilter
+from lightprobe.device.formats.primary import ambient_map
+from lightprobe.device.formats.scene import gltf_environment, usd_environment
+from lightprobe.device.formats.sh_primary import EnvironmentEstimator
 
 NODE_DIR = Path(__file__).parent / "node"
 NODE = shutil.which("node")
@@ -128,7 +128,7 @@ def test_environment_usda_opens_in_pxr_and_its_dome_points_at_the_sun(tmp_path: 
     pxr = pytest.importorskip("pxr")
     from pxr import Gf, Usd, UsdGeom, UsdLux
 
-    from device.core.imageio import write_exr
+    from lightprobe.core.imageio import write_exr
 
     m, env = sunny_env
     (tmp_path / "environment.usda").write_text(usd_environment(env))
@@ -265,8 +265,8 @@ async def test_stream_subscription_interleaves_sh_with_light_sets(tmp_path: Path
 
 
 async def test_hostlink_reads_sh_cubemap_and_environment_and_the_served_gltf_validates(tmp_path: Path) -> None:
-    from hostlink.client import ProbeAuthError, ProbeClient, ProbeRequestError
-    from hostlink.formats import sh_from_map
+    from lightprobe.device.formats.sh_primary import sh_from_map
+    from lightprobe.hostlink.client import ProbeAuthError, ProbeClient, ProbeRequestError
 
     cfg = service_config(tmp_path, pipeline={"fps": 10.0, "light_count": 64})
     async with running_service(cfg) as s, aiohttp.ClientSession() as c:
@@ -307,7 +307,7 @@ async def test_hostlink_reads_sh_cubemap_and_environment_and_the_served_gltf_val
 
 
 def test_export_cli_writes_every_format_and_rejects_bad_input(tmp_path: Path, shared_data: Path) -> None:
-    from device.cli import main
+    from lightprobe.cli import main
 
     src = shared_data / "envmaps" / "lebombo_1k.hdr"
     assert main(["export", str(src), "--format", "sh", "--convention", "webxr", "--out", str(tmp_path / "sh.json")]) == 0

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.environment import EnvironmentEstimator
-from device.core.imageio import read_hdr_image
-from device.core.sh import irradiance
-from device.core.sphere import coarse_equirect
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.sh import irradiance
+from lightprobe.core.sphere import coarse_equirect
+from lightprobe.device.formats.sh_primary import EnvironmentEstimator
 
 pytestmark = pytest.mark.browser
 

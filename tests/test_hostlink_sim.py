@@ -1,5 +1,5 @@
 """hostlink against three probes running the REAL pipeline on the simulated camera
-(``device.pipeline.Pipeline`` + ``sim.camera.SimCamera``, scene ``flashlight``), each a real
+(``lightprobe.device.pipeline.Pipeline`` + ``lightprobe.sim.camera.SimCamera``, scene ``flashlight``), each a real
 service with its own zeroconf on 127.0.0.1: discovery, the Q2-Tree the probe serves from its
 published map, the merged stream, and one probe stopping."""
 
@@ -14,13 +14,13 @@ import pytest
 from aiohttp import web
 from service_harness import RunningService, free_port, service_config, sim_factories
 
-from device.service.routes import q2tree as q2tree_api
-from hostlink import Discovery, MergedStream, ProbeClient
-from hostlink.merge import merge_q2trees
+from lightprobe.device.service.routes import q2tree as q2tree_api
+from lightprobe.hostlink import Discovery, MergedStream, ProbeClient
+from lightprobe.hostlink.merge import merge_q2trees
 
 pytestmark = pytest.mark.slow
-pytest.importorskip("device.pipeline")
-pytest.importorskip("sim.camera")
+pytest.importorskip("lightprobe.device.pipeline")
+pytest.importorskip("lightprobe.sim.camera")
 
 LOOPBACK = ["127.0.0.1"]
 NSIDE = 16
@@ -28,7 +28,7 @@ NSIDE = 16
 
 @contextlib.asynccontextmanager
 async def sim_probe(tmp_path: Path, pid: str, name: str) -> AsyncIterator[RunningService]:
-    from device.service.app import create_app
+    from lightprobe.device.service.app import create_app
 
     d = tmp_path / pid
     d.mkdir()
@@ -78,8 +78,8 @@ async def test_three_simulated_probes(tmp_path: Path) -> None:
                     break
         assert r.frame == tree.meta["frame"]
         assert 64 <= len(tree) <= 66
-        from device.core.sphere import equirect_integral
-        from device.sampling.q2tree import auto_nside
+        from lightprobe.core.sphere import equirect_integral
+        from lightprobe.device.sampling.q2tree import auto_nside
 
         np.testing.assert_allclose(tree.total, equirect_integral(r.equirect), rtol=1e-6)
         assert 2**tree.max_level == auto_nside(r.equirect.shape[0])

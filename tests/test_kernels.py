@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from device.cli.kernels import seed_cache, shipped_kernel_dirs
-from device.core import memory
+from lightprobe.cli.warm_kernels import seed_cache, shipped_kernel_dirs
+from lightprobe.device import allocator as memory
 
 
 def _fake_install(root: Path) -> Path:
@@ -52,10 +52,10 @@ def test_the_shipped_kernels_load_from_a_fresh_cache_dir_without_compiling(tmp_p
     merge's kernel instead of compiling it (its cache-hit counter says so)."""
     code = """
 import os, numpy as np
-from device.cli.kernels import seed_cache
+from lightprobe.cli.warm_kernels import seed_cache
 if "NUMBA_CACHE_DIR" in os.environ:
     seed_cache(os.environ["NUMBA_CACHE_DIR"])
-from device.hdr import rolling
+from lightprobe.device.hdr import rolling
 from types import SimpleNamespace
 n = 4
 t = SimpleNamespace(indptr=np.arange(0, n + 1, dtype=np.int64), indices=np.arange(n, dtype=np.int64),
@@ -130,7 +130,7 @@ def test_release_library_pages_drops_llvm_pages_and_kernels_still_run() -> None:
     and a cached kernel and a fresh compile still run after it."""
     code = """
 import re, numba, numpy as np
-from device.core import memory
+from lightprobe.device import allocator as memory
 def llvm_kb():
     kb, cur = 0, False
     for line in open('/proc/self/smaps'):
@@ -149,7 +149,7 @@ print(before, done, after, f(np.ones(3)), g(np.arange(4.0)))
 """
     # MADV_PAGEOUT leaves a page another process maps too: this test process's own LLVM pages
     # (resident if earlier tests compiled here) would keep the child's resident
-    from device.core import memory
+    from lightprobe.device import allocator as memory
 
     memory.release_library_pages()
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
@@ -169,10 +169,10 @@ def test_skip_numba_blas_probe_keeps_scipy_linalg_out_and_numba_whole() -> None:
     code = """
 import sys
 import numpy as np
-from device.core import memory
+from lightprobe.device import allocator as memory
 assert memory.skip_numba_blas_probe() is True
-from device.core.sphere import equirect_directions
-from device.core.sgfit import _cell_power
+from lightprobe.core.sphere import equirect_directions
+from lightprobe.device.formats.sgfit import _cell_power
 a = np.random.default_rng(1).random((8, 16, 3)).astype(np.float32)
 p = _cell_power(a, np.ones(8), np.zeros(128, np.int32), 1)
 assert np.allclose(p[0], a.reshape(-1, 3).sum(axis=0), rtol=1e-6)

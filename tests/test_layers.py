@@ -1,21 +1,26 @@
 """The packages' import graph, read with ``ast``: one-way layers, no circles, no simulator in
 production code, and a host library that costs only the base layer.
 
-Layers, bottom to top (a unit may import only the units listed for it; every import counts,
-also those inside functions)::
+Every module is ``lightprobe.<folder>...`` (setup.py maps the top-level folders into the one
+namespace). Layers, bottom to top (a unit may import only the units listed for it; every import
+counts, also those inside functions; absolute, relative and ``lightprobe.``-prefixed imports are
+all resolved to the module they name)::
 
-    device.core   errors, sphere, healpix, light sets, the Q2-Tree and SG wire formats (and the SG
-                  fit, which probe and hosts share), the calibration model, image I/O, atomic
-                  writes, exit codes
-    drivers       the camera protocol and the hardware backends
-    calibration   technician routines and the calibration store
-    device        burst, HDR, projection, samplers, pipeline (the processing)
-    device.service  publication: HTTP/WebSocket API, mDNS, systemd
-    device.cli    the command line and the bootstrap that wires a probe
-    sim           the simulator: implements the camera protocol; only bench/tests and the
-                  ``lightprobe.cameras`` entry points (pyproject) reach it
-    hostlink      the host library: the base layer only
-    bench         benchmarks: anything
+    core              the base: contracts and conventions (mDNS TXT, MQTT topics), sphere maths,
+                      HEALPix, the wire types of light sets, SH, SG, Q2-Tree, KTX2 and scene files,
+                      the calibration model, errors, image I/O, atomic writes, exit codes
+    drivers           the camera protocol and the hardware backends
+    calibration       technician routines and the calibration store
+    device.formats    the producers of the host formats (SH + primary light, SG fit, cube maps,
+                      glTF/USD): the probe's, and a host's offline, computed alike
+    device            burst, HDR, projection, samplers, pipeline (the processing)
+    device.service    publication: HTTP/WebSocket API, mDNS, MQTT, systemd
+    sim               the simulator: implements the camera protocol; only bench/tests and the
+                      ``lightprobe.cameras`` entry points (pyproject) reach it
+    hostlink          the host library (discovery, client, streams, merge): the base layer only
+    hostlink.relight  host relighting (cuts, SG, the room): the client and the format producers
+    bench             benchmarks: anything but the command line
+    cli               the ``lightprobe`` command and its subcommands: anything
 """
 
 from __future__ import annotations
@@ -29,42 +34,51 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("device", "drivers", "sim", "calibration", "hostlink", "bench")
+FOLDERS = ("core", "drivers", "calibration", "device", "sim", "hostlink", "bench", "cli")
+PACKAGES = tuple(f"lightprobe.{f}" for f in FOLDERS)
 
+_BELOW_DEVICE = {"core", "drivers", "calibration", "device.formats"}
 ALLOWED: dict[str, set[str]] = {
-    "device.core": set(),
-    "drivers": {"device.core"},
-    "calibration": {"device.core", "drivers"},
-    "device": {"device.core", "drivers", "calibration"},
-    "device.service": {"device.core", "drivers", "calibration", "device"},
-    "device.cli": {"device.core", "drivers", "calibration", "device", "device.service"},
-    "sim": {"device.core", "drivers"},
-    "hostlink": {"device.core"},
-    "bench": {"device.core", "drivers", "calibration", "device", "device.service", "device.cli", "sim",
-              "hostlink"},
+    "core": set(),
+    "drivers": {"core"},
+    "calibration": {"core", "drivers"},
+    "device.formats": {"core"},
+    "device": _BELOW_DEVICE,
+    "device.service": _BELOW_DEVICE | {"device"},
+    "sim": {"core", "drivers"},
+    "hostlink": {"core"},
+    "hostlink.relight": {"core", "hostlink", "device.formats"},
+    "bench": {"core", "drivers", "calibration", "device.formats", "device", "device.service", "sim", "hostlink",
+              "hostlink.relight"},
+    "cli": {"core", "drivers", "calibration", "device.formats", "device", "device.service", "sim", "hostlink",
+            "hostlink.relight", "bench"},
 }
-PRODUCTION = ("device", "drivers", "calibration", "hostlink")
+PRODUCTION = ("core", "drivers", "calibration", "device.formats", "device", "device.service", "hostlink",
+              "hostlink.relight")
 
 
 def unit(module: str) -> str:
-    """The layer a module belongs to."""
-    for prefix in ("device.core", "device.service", "device.cli"):
-        if module == prefix or module.startswith(prefix + "."):
+    """The layer a module belongs to (``lightprobe.`` dropped)."""
+    name = module.removeprefix("lightprobe.")
+    for prefix in ("device.formats", "device.service", "hostlink.relight"):
+        if name == prefix or name.startswith(prefix + "."):
             return prefix
-    return module.split(".")[0]
+    return name.split(".")[0]
 
 
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
-    return ".".join(parts)
+    return ".".join(["lightprobe", *parts])
 
 
 def import_graph() -> dict[str, dict[str, int]]:
     """module -> {imported project module: first line}. Relative imports are resolved;
-    ``from pkg import name`` counts as an import of ``pkg.name`` when that is a module."""
-    modules = {_module_name(p): p for top in PACKAGES for p in (ROOT / top).rglob("*.py")}
+    ``from pkg import name`` counts as an import of ``pkg.name`` when that is a module. An import
+    of a project folder by its bare name (``import device``) is an error: it names no module of
+    the installed package."""
+    modules = {_module_name(p): p for top in FOLDERS for p in (ROOT / top).rglob("*.py")}
     graph: dict[str, dict[str, int]] = defaultdict(dict)
     for mod, path in modules.items():
         is_pkg = path.name == "__init__.py"
@@ -83,7 +97,9 @@ def import_graph() -> dict[str, dict[str, int]]:
                 targets = [f"{name}.{a.name}" if f"{name}.{a.name}" in modules else name
                            for a in node.names]
             for t in targets:
-                if t.split(".")[0] not in PACKAGES:
+                if t.split(".")[0] in FOLDERS:
+                    raise AssertionError(f"{path}:{node.lineno}: imports {t!r}: the package is lightprobe.{t}")
+                if not t.startswith("lightprobe."):
                     continue
                 while t and t not in modules:  # the module that defines the imported name
                     t = t.rpartition(".")[0]
@@ -145,11 +161,15 @@ def graph() -> dict[str, dict[str, int]]:
 
 def test_the_graph_is_read(graph: dict[str, dict[str, int]]) -> None:
     # the reader must see the imports it is meant to police, or every check below is vacuous
-    assert "device.core.errors" in graph["calibration.store"]
-    assert "drivers.base" in graph["device.burst"]
-    assert "sim.camera" in graph["sim.plugin"]
-    assert unit("device.core.sphere") == "device.core"
-    assert unit("device.pipeline") == "device"
+    assert "lightprobe.core.errors" in graph["lightprobe.calibration.store"]  # absolute
+    assert "lightprobe.drivers.base" in graph["lightprobe.device.burst"]
+    assert "lightprobe.sim.camera" in graph["lightprobe.sim.plugin"]  # relative
+    assert "lightprobe.cli.serve" in graph["lightprobe.cli"]  # the commands, by import, not by string
+    assert "lightprobe.hostlink.relight.cuts.render" in graph["lightprobe.cli.relight"]
+    assert unit("lightprobe.core.sphere") == "core"
+    assert unit("lightprobe.device.pipeline") == "device"
+    assert unit("lightprobe.device.formats.sgfit") == "device.formats"
+    assert unit("lightprobe.hostlink.relight.sg.relighter") == "hostlink.relight"
 
 
 def test_no_import_cycles(graph: dict[str, dict[str, int]]) -> None:
@@ -174,34 +194,54 @@ def test_layers_point_one_way(graph: dict[str, dict[str, int]]) -> None:
 
 def test_production_never_imports_the_simulator(graph: dict[str, dict[str, int]]) -> None:
     bad = sorted(f"{m} imports {t}" for m, deps in graph.items() for t in deps
-                 if unit(m).split(".")[0] in PRODUCTION and unit(m) != "bench" and t.split(".")[0] == "sim")
+                 if unit(m) in PRODUCTION and unit(t) == "sim")
     assert bad == []
 
 
 def test_hostlink_takes_only_the_base_layer(graph: dict[str, dict[str, int]]) -> None:
-    bad = sorted(f"{m} imports {t}" for m, deps in graph.items() if m.split(".")[0] == "hostlink"
-                 for t in deps if t.split(".")[0] != "hostlink" and unit(t) != "device.core")
+    bad = sorted(f"{m} imports {t}" for m, deps in graph.items() if unit(m) == "hostlink"
+                 for t in deps if unit(t) not in ("hostlink", "core"))
     assert bad == []
 
 
-def test_device_package_imports_nothing() -> None:
-    tree = ast.parse((ROOT / "device" / "__init__.py").read_text(encoding="utf-8"))
-    assert not [n for n in ast.walk(tree) if isinstance(n, ast.Import | ast.ImportFrom)]
-    core = ast.parse((ROOT / "device" / "core" / "__init__.py").read_text(encoding="utf-8"))
-    assert not [n for n in ast.walk(core) if isinstance(n, ast.Import | ast.ImportFrom)]
+def test_base_layer_imports_numpy_and_the_standard_library_only() -> None:
+    """``core`` is what a host installs: no numba, OpenCV, SciPy or OpenEXR at its import (the
+    image I/O reads EXR and PNG through them when it is asked to, inside its functions)."""
+    allowed = set(sys.stdlib_module_names) | {"numpy", "lightprobe"}
+    bad = []
+    for path in sorted((ROOT / "core").rglob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:  # module level only
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+            bad += [f"{path.name}:{node.lineno} {n}" for n in names if n.split(".")[0] not in allowed]
+    assert bad == []
+
+
+def test_package_init_files_import_nothing_heavy() -> None:
+    for init in (ROOT / "device" / "__init__.py", ROOT / "core" / "__init__.py"):
+        tree = ast.parse(init.read_text(encoding="utf-8"))
+        assert not [n for n in ast.walk(tree) if isinstance(n, ast.Import | ast.ImportFrom)], init
 
 
 def test_import_hostlink_costs_only_the_base_layer() -> None:
-    code = ("import sys, hostlink; hostlink.ProbeClient; hostlink.Discovery; hostlink.merge_q2trees; "
+    code = ("import sys; import lightprobe.hostlink as h; h.ProbeClient; h.Discovery; h.merge_q2trees; "
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('lightprobe.')))); "
             "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT / "tests",
                        timeout=60, check=True)
-    loaded = set(r.stdout.split())
-    assert "hostlink" in loaded
-    assert "device" in loaded
-    assert loaded.isdisjoint({"cv2", "numba", "scipy", "sim", "calibration", "drivers"}), loaded
-    r = subprocess.run([sys.executable, "-c", code.replace("print(", "print(sorted(m for m in sys.modules "
-                        "if m.startswith('device.')), ")], capture_output=True, text=True, cwd=ROOT,
-                       timeout=60, check=True)
-    device_modules = {m.strip("',[]") for m in r.stdout.split("] ")[0].split(", ")}
-    assert all(m.startswith("device.core") for m in device_modules), device_modules
+    ours, loaded = (set(line.split()) for line in r.stdout.splitlines())
+    assert "lightprobe.hostlink.client" in ours
+    assert all(unit(m) in ("hostlink", "core") for m in ours if m != "lightprobe"), ours
+    assert loaded.isdisjoint({"cv2", "numba", "scipy", "OpenEXR", "matplotlib"}), loaded
+
+
+def test_the_wheel_maps_every_folder() -> None:
+    """setup.py's folders are the layers' folders: a new top-level package is placed in both."""
+    import re
+
+    text = (ROOT / "setup.py").read_text(encoding="utf-8")
+    folders = re.search(r"FOLDERS = \(([^)]*)\)", text)
+    assert folders is not None
+    assert set(re.findall(r'"(\w+)"', folders.group(1))) == set(FOLDERS)
+    on_disk = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests"}
+    assert on_disk == set(FOLDERS)

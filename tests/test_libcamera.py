@@ -1,4 +1,4 @@
-"""drivers.libcamera: control conversion, per-request metadata matching, raw frames.
+"""lightprobe.drivers.libcamera: control conversion, per-request metadata matching, raw frames.
 
 picamera2 cannot be installed off a Raspberry Pi, so the camera runs against
 tests/fake_picamera2.py (a mock at the edge of code we do not own).
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from fake_picamera2 import FakePicamera2
 
-from drivers.base import CameraUnavailable, Controls, Mode, PixelFormat
-from drivers.libcamera import (
+from lightprobe.drivers.base import CameraUnavailable, Controls, Mode, PixelFormat
+from lightprobe.drivers.libcamera import (
     Picamera2Camera,
     RequestState,
     SequenceCounter,
@@ -21,7 +21,7 @@ from drivers.libcamera import (
     raw_to_rgb,
     to_controls,
 )
-from drivers.v4l2.convert import mosaic
+from lightprobe.drivers.v4l2.convert import mosaic
 
 
 def test_to_controls_units() -> None:

@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibration.photometric import lux_statistics, photometric_scale, upper_irradiance
-from device.core.sphere import equirect_directions
-from drivers.t10a import (
+from lightprobe.calibration.photometric import lux_statistics, photometric_scale, upper_irradiance
+from lightprobe.core.sphere import equirect_directions
+from lightprobe.drivers.t10a import (
     T10A,
     T10AChecksumError,
     T10ADisconnected,
@@ -23,7 +23,7 @@ from drivers.t10a import (
     make_frame,
     parse_reply,
 )
-from sim.luxmeter import SimT10A
+from lightprobe.sim.luxmeter import SimT10A
 
 
 def test_frame_layout_and_bcc() -> None:
@@ -154,9 +154,9 @@ def test_cli_photometric_with_simulated_meter(tmp_path) -> None:  # type: ignore
     units, meter reading 300 pi lux -> scale 100, merged into the calibration file."""
     import json
 
-    from device.cli.calibrate import main as calibrate_main
-    from device.core.calibration import Calibration
-    from device.core.imageio import write_exr
+    from lightprobe.cli.calibrate import main as calibrate_main
+    from lightprobe.core.calibration import Calibration
+    from lightprobe.core.imageio import write_exr
 
     m = tmp_path / "map.exr"
     write_exr(m, np.full((32, 64, 3), 3.0, np.float32))

@@ -9,10 +9,17 @@ from typing import Any
 
 import aiohttp
 from service_harness import running_service, service_config
+from waiting import HANG_S, hang_guard
 from zeroconf import IPVersion, ServiceStateChange
 from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZeroconf
 
-from device.service.mdns import HTTP_TYPE, SERVICE_TYPE, Advertiser, MdnsInfo, stable_probe_id
+from lightprobe.device.service.mdns import (
+    HTTP_TYPE,
+    SERVICE_TYPE,
+    Advertiser,
+    MdnsInfo,
+    stable_probe_id,
+)
 
 LOOPBACK = ["127.0.0.1"]
 
@@ -33,7 +40,7 @@ class Browser:
         self.events.append((state_change.name, service_type, name))
         self.changed.set()
 
-    async def wait_for(self, state: str, name_part: str, typ: str = SERVICE_TYPE, within: float = 10.0) -> str:
+    async def wait_for(self, state: str, name_part: str, typ: str = SERVICE_TYPE, within: float = HANG_S) -> str:
         async def loop() -> str:
             while True:
                 for st, t, n in self.events:
@@ -42,7 +49,8 @@ class Browser:
                 self.changed.clear()
                 await self.changed.wait()
 
-        return await asyncio.wait_for(loop(), within)
+        async with hang_guard(f"mDNS {state} of {name_part!r} ({typ})", within):
+            return await loop()
 
     async def resolve(self, typ: str, name: str) -> AsyncServiceInfo:
         info = AsyncServiceInfo(typ, name)
@@ -87,8 +95,8 @@ async def test_goodbye_on_shutdown(tmp_path: Path) -> None:
         async with running_service(cfg):
             await b.wait_for("Added", "Bye probe")
             await b.wait_for("Added", "Bye probe", HTTP_TYPE)
-        await b.wait_for("Removed", "Bye probe", within=3)
-        await b.wait_for("Removed", "Bye probe", HTTP_TYPE, within=3)
+        await b.wait_for("Removed", "Bye probe")
+        await b.wait_for("Removed", "Bye probe", HTTP_TYPE)
 
 
 async def test_name_conflict_is_resolved_by_renaming() -> None:
@@ -114,12 +122,12 @@ async def test_address_change_is_reannounced() -> None:
         try:
             await adv.start()
             name = await b.wait_for("Added", "Moving probe")
-            import device.service.mdns as mdns
+            import lightprobe.device.service.mdns as mdns
 
             orig = mdns.current_addresses
             mdns.current_addresses = lambda interfaces: ["127.0.0.1", "127.0.0.2"]
             try:
-                await b.wait_for("Updated", "Moving probe", within=5)
+                await b.wait_for("Updated", "Moving probe")
             finally:
                 mdns.current_addresses = orig
             info = await b.resolve(SERVICE_TYPE, name)

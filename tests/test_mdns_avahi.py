@@ -2,7 +2,7 @@
 
 The test makes its own network + mount namespace (``unshare -nm``, root): loopback up, private
 /run/dbus and /run/avahi-daemon (tmpfs), a private system bus, ``avahi-daemon``; then the service's
-zeroconf registration (``device.service.mdns.Advertiser`` on 127.0.0.1) runs in the same namespace
+zeroconf registration (``lightprobe.device.service.mdns.Advertiser`` on 127.0.0.1) runs in the same namespace
 and ``avahi-browse -rtp _lightprobe._tcp`` must list it with its TXT; after the goodbye it must not.
 """
 
@@ -24,7 +24,7 @@ NEEDED = ("unshare", "ip", "dbus-daemon", "avahi-daemon", "avahi-browse", "mount
 
 HELPER = """
 import asyncio, sys, pathlib
-from device.service.mdns import Advertiser, MdnsInfo
+from lightprobe.device.service.mdns import Advertiser, MdnsInfo
 work = pathlib.Path(sys.argv[1])
 async def main():
     a = Advertiser(MdnsInfo("abcdef012345", "Netns probe", 8080, model="lightprobe-sim",

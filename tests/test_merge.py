@@ -1,4 +1,4 @@
-"""Merging several probes (hostlink.merge, Nikodym et al. 2013 §4): the paper's empirical check
+"""Merging several probes (lightprobe.hostlink.merge, Nikodym et al. 2013 §4): the paper's empirical check
 (merging complete Q2-Trees with equal weights gives the lights of sampling the per-pixel mean
 map), energy (merged energy = weighted mean of the inputs' energies, to 1e-9), the structure of
 the merged tree, distance weights, index interpolation for Pharr/Hemigon and failed probes."""
@@ -12,11 +12,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.core.lightset import LightSet
-from device.core.q2wire import Q2Tree, decode_q2tree, encode_q2tree
-from device.sampling.q2tree import Q2TreeSampler
-from device.sampling.q2tree._nodes import pyramid_from_equirect
-from hostlink.merge import (
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.q2wire import Q2Tree, decode_q2tree, encode_q2tree
+from lightprobe.device.sampling.q2tree import Q2TreeSampler
+from lightprobe.device.sampling.q2tree._nodes import pyramid_from_equirect
+from lightprobe.hostlink.merge import (
     MergeError,
     ProbeInput,
     merge_indexed,
@@ -45,7 +45,7 @@ def complete_tree(img: np.ndarray, level: int = LEVEL) -> Q2Tree:
 
 @pytest.fixture(scope="module")
 def maps(envmap_paths: dict[str, Path]) -> list[np.ndarray]:
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     return [_small(read_hdr_image(envmap_paths[n])) for n in MAPS]
 
@@ -166,7 +166,7 @@ def test_probe_weights() -> None:
 
 
 def _pharr(img: np.ndarray, count: int) -> LightSet:
-    from device.sampling.registry import make_sampler
+    from lightprobe.device.sampling.registry import make_sampler
 
     return make_sampler("pharr").sample(img, count)
 

@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.core.errors import InputError
-from device.core.sphere import angles_from_directions, equirect_integral
-from device.pipeline import Pipeline, PipelineConfig, lights_on_demand, tone_map
-from sim.camera import SimCamera
+from lightprobe.core.errors import InputError
+from lightprobe.core.sphere import angles_from_directions, equirect_integral
+from lightprobe.device.pipeline import Pipeline, PipelineConfig, lights_on_demand
+from lightprobe.device.tonemap import tone_map
+from lightprobe.sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow
 
@@ -53,7 +54,7 @@ async def test_flashlight_power_follows_the_flashlight():
     """Frame after frame, the lights' power in a cone around the flashlight (where it is at that
     frame's sensor time) matches the true map's power there: Pharr's sampler, the rolling estimate
     updated by every exposure of the schedule, long ones that see the lamp only saturated included."""
-    from device.core.sphere import equirect_directions, equirect_solid_angle, luminance
+    from lightprobe.core.sphere import equirect_directions, equirect_solid_angle, luminance
 
     cam = SimCamera("flashlight", seed=2)
     pipe = Pipeline(cam, cam.truth_calibration(), PipelineConfig(sampler="pharr", light_count=256))
@@ -164,9 +165,9 @@ async def test_on_demand_lights_need_the_published_frame_only():
 def test_published_maps_are_never_rewritten_while_held() -> None:
     """The per-frame map buffers are reused only when nothing holds them (a result, a view, a
     memoryview): a held map keeps its frame's values, a released one is reused with zeros below."""
-    from device.pipeline import _Geometry
+    from lightprobe.device.projection.output import OutputGeometry
 
-    geo = _Geometry.__new__(_Geometry)  # only the map buffers: no projector needed
+    geo = OutputGeometry.__new__(OutputGeometry)  # only the map buffers: no projector needed
     geo.height, geo._maps = 8, []
     frame = np.ones((4 * 16, 3), np.float32)
     a = geo.equirect_map(frame)

@@ -4,7 +4,7 @@ accuracy of the published lights against the simulator's truth, changes within t
 For each shared map and the ``flashlight``, ``switch`` and ``daylight`` scenarios the pipeline
 runs as the service drives it (one ``Pipeline.step`` per sensor frame, 256 Q2-Tree lights, the
 simulator's 30 fps mode, not paced: sensor time, deterministic), and
-:func:`bench.live.measure` scores every evaluated frame after the bracket settles (40 frames):
+:func:`lightprobe.bench.live.measure` scores every evaluated frame after the bracket settles (40 frames):
 the diffuse irradiance and glossy errors of the published lights against the true map at that
 frame's time (relative RMSE over 128 upward normals, the samplers' metrics). Figures go to
 ``test-artifacts/pipeline_accuracy.json``; ``lightprobe bench live`` has the same per scene.
@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from bench.live import measure
+from lightprobe.bench.live import measure
 from tests.conftest import ENVMAP_NAMES
 
 pytestmark = pytest.mark.slow
@@ -69,7 +69,7 @@ def test_the_published_flashlight_follows_within_one_frame(artifacts_dir: Path) 
     """A 600:1 flashlight carried around the probe at 40 degrees a second: the published
     flashlight is where the true one was at most one frame earlier, every frame; its energy is
     kept (a long exposure sees it only saturated: the lamp tracker draws it where its measured
-    velocity puts it, ``device.hdr.tracking``). Diffuse within 1% and glossy within 3% on every
+    velocity puts it, ``lightprobe.device.hdr.tracking``). Diffuse within 1% and glossy within 3% on every
     scored frame, the lamp's crossing of the map's 0 / 2 pi seam (frames 230-245) included
     (every frame of 300: 0.80% / 2.81% max; without the tracker 1.19% / 11.6% over 160)."""
     res = measure("flashlight", frames=260, every=2)

@@ -10,9 +10,9 @@ import itertools
 import numpy as np
 import pytest
 
-from device.pipeline import Pipeline, PipelineConfig
-from drivers.base import Controls
-from sim.v4l2_fake import FakeUVCCamera
+from lightprobe.device.pipeline import Pipeline, PipelineConfig
+from lightprobe.drivers.base import Controls
+from lightprobe.sim.v4l2_fake import FakeUVCCamera
 
 pytestmark = pytest.mark.slow
 

@@ -13,11 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from device.core.calibration import Calibration, FisheyeModel, Photometric, Vignetting
-from device.core.errors import InputError
-from device.core.healpix import npix, pix2vec_nest, vec2pix_nest
-from device.core.sphere import CAMERA_TO_PROBE, directions_from_angles
-from device.projection import (
+from lightprobe.core.calibration import Calibration, FisheyeModel, Photometric, Vignetting
+from lightprobe.core.errors import InputError
+from lightprobe.core.healpix import npix, pix2vec_nest, vec2pix_nest
+from lightprobe.core.sphere import CAMERA_TO_PROBE, directions_from_angles
+from lightprobe.device.projection import (
     Projector,
     fisheye_pixel_directions,
     fisheye_pixel_solid_angles,
@@ -349,8 +349,8 @@ def test_a_lens_narrower_than_the_hemisphere(lower: str) -> None:
 
 def test_disk_cache_restores_identical_tables(tmp_path):  # type: ignore[no-untyped-def]
     """A restart loads the tables from the state dir instead of rebuilding them."""
-    from device.projection import Projector
-    from device.projection.diskcache import cache_path
+    from lightprobe.device.projection import Projector
+    from lightprobe.device.projection.diskcache import cache_path
 
     cal = _calibration()
     first = Projector(cal, equirect_height=32, nside=8, cache=False, cache_dir=tmp_path)
@@ -373,7 +373,7 @@ def test_the_table_builds_sparse_assembly_matches_scipy() -> None:
     duplicates summed, columns sorted, rows added, as scipy.sparse does it."""
     import scipy.sparse as sp
 
-    from device.projection.tables import _add_rows, _assemble_csr, _Coo
+    from lightprobe.device.projection.tables import _add_rows, _assemble_csr, _Coo
 
     rng = np.random.default_rng(5)
     n, m = 40, 300
@@ -406,7 +406,7 @@ def test_sample_sharing_splits_a_regions_variance_exactly() -> None:
     """``sample_sharing``: output pixels that read the same fisheye pixels. Over a region holding
     every reader of its fisheye pixels, ``sum_j var(L_j) k_j`` is the region's variance exactly
     (independent unit-variance inputs); one reader per input gives 1; two equal readers 2."""
-    from device.projection import sample_sharing
+    from lightprobe.device.projection import sample_sharing
 
     rng = np.random.default_rng(5)
     n_out, n_in = 40, 25

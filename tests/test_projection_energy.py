@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.healpix import equirect_to_healpix, npix, pix2vec_nest
-from device.core.sphere import equirect_row_solid_angle
-from device.projection import Projector
-from sim.camera import SimCamera
+from lightprobe.core.healpix import equirect_to_healpix, npix, pix2vec_nest
+from lightprobe.core.sphere import equirect_row_solid_angle
+from lightprobe.device.projection import Projector
+from lightprobe.sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow
 

@@ -1,4 +1,4 @@
-"""The compact Q2-Tree encoding (device.core.q2wire): round trips of real sampler trees, the size
+"""The compact Q2-Tree encoding (lightprobe.core.q2wire): round trips of real sampler trees, the size
 budget (<= 8 KB at 256 lights), and damage (byte flips, truncation, extension) that must raise
 Q2DecodeError and never decode into a different tree."""
 
@@ -13,9 +13,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.core.q2wire import MAGIC, Q2DecodeError, Q2Tree, decode_q2tree, encode_q2tree
-from device.sampling.q2tree import Q2TreeSampler, nodes_to_uniq
-from device.sampling.q2tree._nodes import pyramid_from_equirect
+from lightprobe.core.q2wire import MAGIC, Q2DecodeError, Q2Tree, decode_q2tree, encode_q2tree
+from lightprobe.device.sampling.q2tree import Q2TreeSampler, nodes_to_uniq
+from lightprobe.device.sampling.q2tree._nodes import pyramid_from_equirect
 
 
 def _small(img: np.ndarray, height: int = 128) -> np.ndarray:
@@ -36,13 +36,13 @@ def sampler_tree(img: np.ndarray, count: int, nside: int = 64) -> Q2Tree:
 
 @pytest.fixture(scope="module")
 def studio_tree(envmap_paths: dict[str, Path]) -> Q2Tree:
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     return sampler_tree(_small(read_hdr_image(envmap_paths["studio_small_03_1k.hdr"])), 256)
 
 
 def test_round_trip_and_size_at_256_lights(envmap_paths: dict[str, Path]) -> None:
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     for name, path in envmap_paths.items():
         tree = sampler_tree(_small(read_hdr_image(path)), 256)

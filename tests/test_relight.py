@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.core.sphere import equirect_integral
-from hostlink.relight import cuts as C
-from hostlink.relight.directions import (
+from lightprobe.core.sphere import equirect_integral
+from lightprobe.hostlink.relight.cuts import coding as C
+from lightprobe.hostlink.relight.cuts.directions import (
     LEAF_SOLID_ANGLE,
     NDIR,
     direction_to_leaf,
@@ -207,9 +207,9 @@ def test_trilinear_interpolation_of_8_cuts_equals_dense(seed: int) -> None:
 
 
 def test_leaf_light_conserves_energy_and_prefix_sums(envmap_paths: dict[str, Path]) -> None:
-    from device.core.imageio import read_hdr_image
-    from device.core.lightset import LightSet
-    from hostlink.relight.lighting import (
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.core.lightset import LightSet
+    from lightprobe.hostlink.relight.cuts.lighting import (
         leaf_light_from_equirect,
         leaf_light_from_lightset,
         prefix_sums,
@@ -235,7 +235,7 @@ def test_leaf_light_conserves_energy_and_prefix_sums(envmap_paths: dict[str, Pat
 
 
 def test_blinn_phong_and_ward_are_reciprocal() -> None:
-    from hostlink.relight.kernels import brdf_spec
+    from lightprobe.hostlink.relight.cuts.kernels import brdf_spec
 
     rng = np.random.default_rng(5)
     n = np.array([0.0, 1.0, 0.0])

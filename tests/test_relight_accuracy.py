@@ -23,12 +23,12 @@ MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr
 
 @pytest.fixture(scope="module")
 def spot_setup(shared_data: Path, envmap_paths: dict[str, Path], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from device.core.imageio import read_hdr_image
-    from hostlink.relight.lighting import leaf_light_from_equirect
-    from hostlink.relight.precompute import DEFAULT_TAU, precompute
-    from hostlink.relight.reference import reference_radiance
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import load_scene
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
+    from lightprobe.hostlink.relight.cuts.precompute import DEFAULT_TAU, precompute
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import load_scene
 
     d = tmp_path_factory.mktemp("spot")
     doc = {"version": 1,
@@ -48,7 +48,7 @@ def spot_setup(shared_data: Path, envmap_paths: dict[str, Path], tmp_path_factor
 
 
 def _rel_rms(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray, ref: np.ndarray) -> float:  # type: ignore[no-untyped-def]
-    from device.core.sphere import luminance
+    from lightprobe.core.sphere import luminance
 
     rl.set_leaf_light(leaf)
     b, _ = rl.vertex_radiance(eye, vidx)
@@ -68,7 +68,7 @@ def test_spot_per_vertex_error_within_2_percent(spot_setup, k: int) -> None:  # 
 
 
 def test_cuts_are_valid_and_smaller_than_leaves(spot_setup) -> None:  # type: ignore[no-untyped-def]
-    from hostlink.relight.cuts import is_cut
+    from lightprobe.hostlink.relight.cuts.coding import is_cut
 
     _, pre, *_ = spot_setup
     lens = np.diff(pre.svc_offsets)
@@ -78,9 +78,9 @@ def test_cuts_are_valid_and_smaller_than_leaves(spot_setup) -> None:  # type: ig
 
 
 def test_height_coded_vcf_at_most_45_percent_of_index_coded(shared_data: Path) -> None:
-    from hostlink.relight.cuts import decode_height, encode_height, encode_index
-    from hostlink.relight.precompute import compute_vcf
-    from hostlink.relight.scene import load_obj
+    from lightprobe.hostlink.relight.cuts.coding import decode_height, encode_height, encode_index
+    from lightprobe.hostlink.relight.cuts.precompute import compute_vcf
+    from lightprobe.hostlink.relight.scene import load_obj
 
     mesh = load_obj(shared_data / "meshes" / "spot.obj")
     f = compute_vcf(mesh.vertices, mesh.faces, (4, 8, 1.2, 10.0), lambda n: None)

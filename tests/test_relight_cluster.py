@@ -18,8 +18,8 @@ import pytest
 pytest.importorskip("embreex")
 distributed = pytest.importorskip("distributed")
 
-from hostlink.relight import precompute as pre_mod  # noqa: E402
-from hostlink.relight.scene import load_scene  # noqa: E402
+from lightprobe.hostlink.relight.cuts import precompute as pre_mod  # noqa: E402
+from lightprobe.hostlink.relight.scene import load_scene  # noqa: E402
 from tests.test_relight_scene import write_scene  # noqa: E402
 
 PARAMS = {"spheres": 6, "grid": 8}
@@ -43,7 +43,7 @@ def reference(scene, tmp_path_factory: pytest.TempPathFactory) -> bytes:  # type
 
 @pytest.fixture(scope="module")
 def client() -> Iterator[object]:
-    from hostlink.relight.cluster import connect
+    from lightprobe.hostlink.relight.cuts.cluster import connect
 
     with connect("local", workers=2) as c:  # a real scheduler and 2 worker processes on loopback
         yield c
@@ -139,8 +139,8 @@ def test_an_interrupted_run_redoes_only_the_missing_chunks(scene, reference: byt
 
 
 def test_precompute_on_is_checked() -> None:
-    from device.core.errors import InputError
-    from hostlink.relight.cluster import resolve
+    from lightprobe.core.errors import InputError
+    from lightprobe.hostlink.relight.cuts.cluster import resolve
 
     assert resolve(None) in (None, os.environ.get("DASK_SCHEDULER_ADDRESS"))
     assert resolve("local") == "local"

@@ -1,7 +1,7 @@
-"""Live relighting against the REAL probe service on loopback: ``device.pipeline.Pipeline`` on the
-simulated camera (``sim.camera.SimCamera``, scene ``flashlight``: a light carried around the
+"""Live relighting against the REAL probe service on loopback: ``lightprobe.device.pipeline.Pipeline`` on the
+simulated camera (``lightprobe.sim.camera.SimCamera``, scene ``flashlight``: a light carried around the
 probe, so every frame's light set differs), the real aiohttp app with its WebSocket stream, and
-``hostlink.relight.live.run_live`` re-rendering a small scene for each light set it receives.
+``lightprobe.hostlink.relight.cuts.live.run_live`` re-rendering a small scene for each light set it receives.
 Slow: the simulator's tables take tens of seconds to build on a shared box."""
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from aiohttp import web
 from service_harness import RunningService, free_port, service_config
 
 pytestmark = pytest.mark.slow
-pytest.importorskip("device.pipeline")
-pytest.importorskip("sim.camera")
+pytest.importorskip("lightprobe.device.pipeline")
+pytest.importorskip("lightprobe.sim.camera")
 
 TOKEN = "test-token-0123456789"
 CUBE = """v -0.5 0 -0.5
@@ -42,8 +42,8 @@ f 2 3 7 6
 
 @contextlib.asynccontextmanager
 async def sim_probe(tmp_path: Path) -> AsyncIterator[RunningService]:
-    from device.cli.bootstrap import camera_factory, pipeline_factory
-    from device.service.app import create_app
+    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
+    from lightprobe.device.service.app import create_app
 
     pid = "relightprobe1"
     cfg = service_config(tmp_path, probe={"name": "relight", "id": pid},
@@ -64,11 +64,11 @@ async def sim_probe(tmp_path: Path) -> AsyncIterator[RunningService]:
 
 @pytest.mark.timeout(300)
 async def test_live_rerenders_when_the_real_probe_lights_change(tmp_path: Path) -> None:
-    from device.core.imageio import read_hdr_image
-    from hostlink.relight.live import run_live
-    from hostlink.relight.precompute import precompute
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import load_scene
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.hostlink.relight.cuts.live import run_live
+    from lightprobe.hostlink.relight.cuts.precompute import precompute
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import load_scene
 
     (tmp_path / "cube.obj").write_text(CUBE)
     doc = {"version": 1, "materials": {"floor": {"type": "lambert", "kd": [0.5, 0.5, 0.5]},

@@ -16,7 +16,7 @@ import json
 import numpy as np
 import pytest
 
-from device.core.sphere import luminance
+from lightprobe.core.sphere import luminance
 
 pytestmark = pytest.mark.slow
 
@@ -49,10 +49,10 @@ def sky(h: int = 64) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def box_scene(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from hostlink.relight.lighting import leaf_light_from_equirect
-    from hostlink.relight.precompute import precompute
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
+    from lightprobe.hostlink.relight.cuts.precompute import precompute
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import load_scene
 
     d = tmp_path_factory.mktemp("box")
     (d / "box.obj").write_text(BOX)
@@ -84,8 +84,8 @@ def _ground_outside(rl, pre) -> np.ndarray:  # type: ignore[no-untyped-def]
 
 
 def test_leaf_of_matches_direction_to_leaf() -> None:
-    from hostlink.relight.directions import NDIR, direction_to_leaf, leaf_directions
-    from hostlink.relight.occlusion import leaf_of
+    from lightprobe.hostlink.relight.cuts.directions import NDIR, direction_to_leaf, leaf_directions
+    from lightprobe.hostlink.relight.cuts.occlusion import leaf_of
 
     d = leaf_directions()
     assert all(leaf_of(*d[j]) == j for j in range(0, NDIR, 7))
@@ -96,8 +96,8 @@ def test_leaf_of_matches_direction_to_leaf() -> None:
 
 
 def test_rotated_light_tables_conserve_energy_and_moments(box_scene) -> None:  # type: ignore[no-untyped-def]
-    from hostlink.relight.lighting import light_tables, rotated_light_tables
-    from hostlink.relight.scene import rotation_matrix
+    from lightprobe.hostlink.relight.cuts.lighting import light_tables, rotated_light_tables
+    from lightprobe.hostlink.relight.scene import rotation_matrix
 
     *_, leaf = box_scene
     R = rotation_matrix(np.array([20.0, 50.0, -10.0]))
@@ -114,8 +114,8 @@ def test_occlusion_path_matches_counter_based_product(box_scene) -> None:  # typ
     """Translation: static minus occluded light vs SVC x interpolated VCF product (Steps 1-4):
     the same sum up to where the cosine-moment correction is evaluated (per piece with the SVC
     node's weight vs per merged node), and no further from brute force."""
-    from hostlink.relight.kernels import shade_dynamic
-    from hostlink.relight.reference import reference_radiance
+    from lightprobe.hostlink.relight.cuts.kernels import shade_dynamic
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
     scene, pre, rl, leaf = box_scene
     rl.move("box", [0.3, 0.0, -0.2])
@@ -142,7 +142,7 @@ def test_occlusion_path_matches_counter_based_product(box_scene) -> None:  # typ
 @pytest.fixture(scope="module")
 def unrotated_error(box_scene) -> float:  # type: ignore[no-untyped-def]
     """Baseline: the VCF's own error (12 spheres x 6 x 24^2 points) for the unrotated box."""
-    from hostlink.relight.reference import reference_radiance
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
     scene, pre, rl, leaf = box_scene
     rl.move("box", [0.2, 0.0, 0.1])
@@ -158,7 +158,7 @@ def unrotated_error(box_scene) -> float:  # type: ignore[no-untyped-def]
                          ids=["y60", "y135", "tilted"])
 def test_rotated_occluder_against_brute_force(box_scene, unrotated_error: float,  # type: ignore[no-untyped-def]
                                               angles: tuple[float, float, float]) -> None:
-    from hostlink.relight.reference import reference_radiance
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
     scene, pre, rl, leaf = box_scene
     rl.move("box", [0.2, 0.0, 0.1], np.array(angles))
@@ -180,7 +180,7 @@ def test_rotated_occluder_against_brute_force(box_scene, unrotated_error: float,
 def test_rotated_object_own_shading_against_brute_force(box_scene) -> None:  # type: ignore[no-untyped-def]
     """Own vertices of a box turned about the vertical axis (ground plane invariant): shaded in
     the object frame under the rotated light."""
-    from hostlink.relight.reference import reference_radiance
+    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
     scene, pre, rl, leaf = box_scene
     rl.move("box", [0.1, 0.0, 0.0], np.array([0.0, 70.0, 0.0]))
@@ -196,7 +196,7 @@ def test_rotated_object_own_shading_against_brute_force(box_scene) -> None:  # t
 
 
 def test_render_cache_under_rotation_matches_fresh_render(box_scene) -> None:  # type: ignore[no-untyped-def]
-    from hostlink.relight.render import Relighter
+    from lightprobe.hostlink.relight.cuts.render import Relighter
 
     scene, pre, rl, leaf = box_scene
     rl.move("box", [0.0, 0.0, 0.0])

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.errors import InputError
-from hostlink.relight.scene import load_obj, load_scene
+from lightprobe.core.errors import InputError
+from lightprobe.hostlink.relight.scene import load_obj, load_scene
 
 CUBE = """# unit cube
 v -0.5 0 -0.5
@@ -67,7 +67,7 @@ def test_obj_parser_polygons_and_normals(tmp_path: Path) -> None:
     m = load_obj(p)
     assert m.vertices.shape == (8, 3)
     assert m.faces.shape == (12, 3)
-    from hostlink.relight.scene import vertex_normals
+    from lightprobe.hostlink.relight.scene import vertex_normals
 
     n = vertex_normals(m)
     c = m.vertices - m.vertices.mean(axis=0)
@@ -84,10 +84,10 @@ def test_malformed_obj_lines_name_file_and_line(tmp_path: Path, line: str, needl
 
 
 def test_scene_errors_exit_2_naming_the_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from hostlink.relight.cli import main
+    from lightprobe.cli.relight import main
 
     lights = tmp_path / "sky.exr"
-    from device.core.imageio import write_exr
+    from lightprobe.core.imageio import write_exr
 
     write_exr(lights, sky())
     out = tmp_path / "o.png"
@@ -125,7 +125,7 @@ def test_scene_errors_exit_2_naming_the_line(tmp_path: Path, capsys: pytest.Capt
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory: pytest.TempPathFactory) -> tuple[object, object, Path]:
-    from hostlink.relight.precompute import precompute
+    from lightprobe.hostlink.relight.cuts.precompute import precompute
 
     d = tmp_path_factory.mktemp("tiny")
     scene = load_scene(write_scene(d))
@@ -134,8 +134,8 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> tuple[object, object, Path
 
 
 def test_precompute_is_cached_and_deterministic(tiny: tuple) -> None:
-    from hostlink.relight.cuts import is_cut
-    from hostlink.relight.precompute import precompute
+    from lightprobe.hostlink.relight.cuts.coding import is_cut
+    from lightprobe.hostlink.relight.cuts.precompute import precompute
 
     scene, pre, d = tiny
     again = precompute(scene, spheres=4, grid=6, cache_dir=d / "cache", progress=False)
@@ -155,7 +155,7 @@ def test_precompute_is_cached_and_deterministic(tiny: tuple) -> None:
 
 
 def test_vcf_shadows_ground_and_moving_far_away_removes_them(tiny: tuple) -> None:
-    from hostlink.relight.render import Relighter
+    from lightprobe.hostlink.relight.cuts.render import Relighter
 
     scene, pre, _ = tiny
     rl = Relighter(scene, pre)
@@ -172,7 +172,7 @@ def test_vcf_shadows_ground_and_moving_far_away_removes_them(tiny: tuple) -> Non
 
 
 def test_all_black_lights_give_black_vertices(tiny: tuple) -> None:
-    from hostlink.relight.render import Relighter
+    from lightprobe.hostlink.relight.cuts.render import Relighter
 
     scene, pre, _ = tiny
     rl = Relighter(scene, pre)
@@ -182,8 +182,9 @@ def test_all_black_lights_give_black_vertices(tiny: tuple) -> None:
 
 
 def test_raster_bary_and_render_outputs(tiny: tuple, tmp_path: Path) -> None:
-    from device.core.imageio import read_hdr_image
-    from hostlink.relight.render import Relighter, rasterize, write_image
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.hostlink.relight.cuts.render import Relighter, rasterize
+    from lightprobe.hostlink.relight.raster import write_image
 
     scene, pre, _ = tiny
     r = rasterize(scene.camera, pre.vertices, pre.faces)
@@ -205,8 +206,8 @@ def test_raster_bary_and_render_outputs(tiny: tuple, tmp_path: Path) -> None:
 
 
 def test_material_edit_changes_only_that_material(tiny: tuple) -> None:
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import Material
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import Material
 
     scene, pre, _ = tiny
     rl = Relighter(scene, pre)
@@ -273,14 +274,14 @@ def probe_server() -> Iterator[str]:
 
 
 def test_cli_lightset_json_url_and_live(tmp_path: Path, probe_server: str) -> None:
-    from hostlink.relight.cli import main
+    from lightprobe.cli.relight import main
 
     p = write_scene(tmp_path, movable=False)
     lj = tmp_path / "lights.json"
     lj.write_text(json.dumps(_lightset_doc(1, 5.0)))
     cache = tmp_path / "cache"
     assert main([str(p), "--lights", str(lj), "--out", str(tmp_path / "a.exr"), "--cache", str(cache), "--quiet"]) == 0
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     a = read_hdr_image(tmp_path / "a.exr")
     assert a.max() > 0
@@ -295,7 +296,7 @@ def test_cli_lightset_json_url_and_live(tmp_path: Path, probe_server: str) -> No
 
 
 def test_dispatcher_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from device.cli import main as lightprobe
+    from lightprobe.cli import main as lightprobe
 
     p = write_scene(tmp_path, movable=False)
     assert lightprobe(["relight", str(p), "--lights", str(tmp_path / "x.exr"), "--out", str(tmp_path / "o.jpg")]) == 2
@@ -306,8 +307,8 @@ def test_dispatcher_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str
 
 
 def test_render_cache_matches_fresh_render(tiny: tuple) -> None:
-    from hostlink.relight.render import Relighter
-    from hostlink.relight.scene import Camera, Material
+    from lightprobe.hostlink.relight.cuts.render import Relighter
+    from lightprobe.hostlink.relight.scene import Camera, Material
 
     scene, pre, _ = tiny
     rl = Relighter(scene, pre)
@@ -333,8 +334,8 @@ def test_render_cache_matches_fresh_render(tiny: tuple) -> None:
 
 
 def test_cli_move_and_rotate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from device.core.imageio import read_hdr_image, write_exr
-    from hostlink.relight.cli import main
+    from lightprobe.cli.relight import main
+    from lightprobe.core.imageio import read_hdr_image, write_exr
 
     p = write_scene(tmp_path)
     lights = tmp_path / "sky.exr"

@@ -1,4 +1,4 @@
-"""SG relighting (Michiels et al. 2015; hostlink.relight.sg): closed forms, spot.obj on a ground plane
+"""SG relighting (Michiels et al. 2015; lightprobe.hostlink.relight.sg.relighter): closed forms, spot.obj on a ground plane
 under the six shared maps against the brute force (2^15 directions, every ray cast, the true map,
 so the SG fit's error counts), deformation, the CLI.
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.errors import InputError
+from lightprobe.core.errors import InputError
 
 pytestmark = pytest.mark.slow
 
@@ -35,15 +35,15 @@ def _scene_doc(shared: Path, clay: str = "phong") -> dict:
 
 
 def _rel_rms(b: np.ndarray, ref: np.ndarray) -> float:
-    from device.core.sphere import luminance
+    from lightprobe.core.sphere import luminance
 
     y, yr = luminance(b), luminance(ref)
     return float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
 
 
 def _reference(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
-    from hostlink.relight.precompute import scene_eps
-    from hostlink.relight.reference import brute_force_radiance
+    from lightprobe.hostlink.relight.cuts.reference import brute_force_radiance
+    from lightprobe.hostlink.relight.rays import scene_eps
 
     return brute_force_radiance(rl.vertices, rl.faces, rl.normals(), rl.matid, rl.mats, scene_eps(rl.scene),
                                 leaf, eye, vidx)
@@ -51,7 +51,7 @@ def _reference(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray) -> np.nd
 
 @pytest.fixture(scope="module")
 def maps(envmap_paths: dict[str, Path]) -> list[np.ndarray]:
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     return [read_hdr_image(envmap_paths[m]) for m in MAPS]
 
@@ -59,16 +59,16 @@ def maps(envmap_paths: dict[str, Path]) -> list[np.ndarray]:
 @pytest.fixture(scope="module")
 def lobes(maps: list[np.ndarray]):  # type: ignore[no-untyped-def]
     """The SG fit of each map, as a probe would serve it (fitted once)."""
-    from device.core.sgfit import fit_sg
+    from lightprobe.device.formats.sgfit import fit_sg
 
     return [fit_sg(m) for m in maps]
 
 
 @pytest.fixture(scope="module", params=["lambert", "phong"])
 def spot(request, shared_data: Path, maps: list[np.ndarray], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from hostlink.relight.lighting import leaf_light_from_equirect
-    from hostlink.relight.scene import load_scene
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
+    from lightprobe.hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     d = tmp_path_factory.mktemp("sg")
     (d / "spot.json").write_text(json.dumps(_scene_doc(shared_data, request.param)))
@@ -83,7 +83,7 @@ def spot(request, shared_data: Path, maps: list[np.ndarray], tmp_path_factory: p
 def test_zonal_cosine_matches_quadrature_and_limits() -> None:
     """C(t) = integral exp(lam (p.w - 1)) max(a.w, 0) dw against a Fibonacci-sphere sum; as lam -> 0
     it is pi for every t, for a sharp lobe (2 pi / lam) max(t, 0)."""
-    from hostlink.relight.sg import zonal_cosine
+    from lightprobe.hostlink.relight.sg.tables import zonal_cosine
 
     n = 400_000
     k = np.arange(n) + 0.5
@@ -112,10 +112,11 @@ def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp
     residual lobes' SG radiance on 2^15 directions and adds the peaks (too sharp for those
     directions: the sun is 0.5 deg) by their zonal integral, checked against quadrature above.
     What is left in the tests below is visibility and the probe's fit."""
-    from device.core.sg import SGLighting
-    from hostlink.relight.directions import LEAF_SOLID_ANGLE, leaf_directions
-    from hostlink.relight.scene import load_scene
-    from hostlink.relight.sg import SGRelighter, zonal_cosine
+    from lightprobe.core.sg import SGLighting
+    from lightprobe.hostlink.relight.cuts.directions import LEAF_SOLID_ANGLE, leaf_directions
+    from lightprobe.hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
+    from lightprobe.hostlink.relight.sg.tables import zonal_cosine
 
     doc = _scene_doc(shared_data, "lambert")
     doc["objects"] = []
@@ -152,7 +153,7 @@ BOUNDS = {("lambert", "rays"): 0.03, ("phong", "rays"): 0.05,
 
 @pytest.mark.parametrize("visibility", ["rays", "voxels"])
 def test_spot_on_the_ground_under_every_map(spot, lobes, visibility: str) -> None:  # type: ignore[no-untyped-def]
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     clay, scene, vidx, _leaf, ref = spot
     rl = SGRelighter(scene, visibility=visibility)
@@ -174,7 +175,7 @@ def test_a_deforming_mesh_keeps_its_accuracy_and_revoxelises_only_itself(spot, l
     """Deform the cow every frame (squash and shear, different each frame): no precompute, the
     error against the brute force of the deformed scene stays near the static one; the ground
     is no voxels at all (a rectangle: an exact occluder of the cones)."""
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     clay, scene, vidx, leaf, _ref = spot
     if clay != "phong":
@@ -210,8 +211,8 @@ def test_shadow_rays_leave_out_only_the_planes_that_cannot_occlude(spot) -> None
     """The sun's shadow rays go up from the ground and the cow: the floor cannot occlude any of
     them, so it is left out of their BVH, with the same answer as the full scene; a light below
     the floor's horizon keeps it in."""
-    from hostlink.relight.precompute import occluded, scene_eps
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.rays import occluded, scene_eps
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     _clay, scene, _vidx, _leaf, _ref = spot
     rl = SGRelighter(scene, visibility="voxels")
@@ -235,9 +236,9 @@ def test_broad_peaks_render_soft_shadows_from_the_vertices(spot, lobes) -> None:
     """studio_small_03's lamps (2-4 deg) are broad peaks: with voxels their shadows are 8 lobe
     rays per vertex of the visible triangles, interpolated; the image agrees with the per-vertex
     shading where pixels sit on vertices, and a light change re-traces nothing."""
-    from device.core.sg import SGLighting
-    from hostlink.relight.raster import rasterize
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.core.sg import SGLighting
+    from lightprobe.hostlink.relight.raster import rasterize
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     _clay, scene, _vidx, _leaf, _ref = spot
     rl = SGRelighter(scene, visibility="voxels")
@@ -267,8 +268,8 @@ def test_broad_peaks_render_soft_shadows_from_the_vertices(spot, lobes) -> None:
 
 
 def test_refuses_what_it_cannot_shade(shared_data: Path, tmp_path: Path) -> None:
-    from hostlink.relight.scene import load_scene
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     doc = _scene_doc(shared_data, "ward")
     (tmp_path / "w.json").write_text(json.dumps(doc))
@@ -295,7 +296,7 @@ def test_cli_renders_without_precompute(shared_data: Path, envmap_paths: dict[st
     env = {"XDG_CACHE_HOME": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
     for src in (str(envmap_paths["rooitou_park_1k.hdr"]), str(sgj)):
         out = tmp_path / "out.png"
-        r = subprocess.run([sys.executable, "-m", "device.cli", "relight", str(tmp_path / "spot.json"), "--method", "sg",
+        r = subprocess.run([sys.executable, "-m", "lightprobe.cli", "relight", str(tmp_path / "spot.json"), "--method", "sg",
                             "--lights", src, "--out", str(out), "--move", "spot=0.1,0,0"],
                            capture_output=True, text=True, env=env, timeout=300, cwd=Path(__file__).parents[1])
         assert r.returncode == 0, r.stderr
@@ -303,7 +304,7 @@ def test_cli_renders_without_precompute(shared_data: Path, envmap_paths: dict[st
         assert img.shape == (72, 96, 3)
         assert img.mean() > 5
     assert not (tmp_path / "cache").exists()
-    r = subprocess.run([sys.executable, "-m", "device.cli", "relight", str(tmp_path / "spot.json"), "--method", "sg",
+    r = subprocess.run([sys.executable, "-m", "lightprobe.cli", "relight", str(tmp_path / "spot.json"), "--method", "sg",
                         "--lights", str(sgj), "--out", str(tmp_path / "x.png"), "--voxels", "100"],
                        capture_output=True, text=True, env=env, timeout=300, cwd=Path(__file__).parents[1])
     assert r.returncode == 2
@@ -314,8 +315,8 @@ def test_scene_file_frames_deform_and_moves_keep_the_shape(shared_data: Path, lo
     """A scene file's deforming object (``"frames"``: OBJ shapes with the mesh's topology):
     ``set_frame`` takes each shape, a move poses the current shape (it does not reset it), and a
     frame with another topology or a missing file is refused naming it; the CLI's ``--frame``."""
-    from hostlink.relight.scene import load_obj, load_scene
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.scene import load_obj, load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     mesh = load_obj(shared_data / "meshes" / "spot.obj")
     for k, s in enumerate((0.9, 0.7)):
@@ -341,7 +342,7 @@ def test_scene_file_frames_deform_and_moves_keep_the_shape(shared_data: Path, lo
     sgj = tmp_path / "sg.json"
     sgj.write_text(json.dumps(lobes[1].to_json()))
     for frame, code in (("1", 0), ("5", 2)):
-        r = subprocess.run([sys.executable, "-m", "device.cli", "relight", str(tmp_path / "d.json"), "--method", "sg",
+        r = subprocess.run([sys.executable, "-m", "lightprobe.cli", "relight", str(tmp_path / "d.json"), "--method", "sg",
                             "--lights", str(sgj), "--out", str(tmp_path / "f.png"), "--frame", frame],
                            capture_output=True, text=True, timeout=300, cwd=Path(__file__).parents[1])
         assert r.returncode == code, r.stderr
@@ -363,7 +364,7 @@ def test_rectangles_occlude_the_cones_exactly_and_the_grid_follows_the_objects(s
     voxel floor let 20-30% through; a planar mesh that is not a rectangle (the ground's triangles
     without one corner) stays voxels. The grid holds the cow only and is refitted when the cow
     moves out of it; the moved cow still shadows the ground as the rays say."""
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     clay, scene, _vidx, _leaf, _ref = spot
     if clay != "lambert":
@@ -413,8 +414,8 @@ def test_a_wall_from_a_mesh_file_is_an_exact_rectangle(shared_data: Path, tmp_pa
     files are): still a plane and a rectangle (found along its triangles' edges, not the axes), so
     an exact occluder: a cone aimed at its middle from in front is black, one aimed away clear,
     one half over its top edge half through. Cut a corner triangle off and it is voxels."""
-    from hostlink.relight.scene import load_scene
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     th = np.radians(30.0)
     e1 = np.array([np.cos(th), 0.0, np.sin(th)]) * 2.0

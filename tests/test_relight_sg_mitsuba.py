@@ -29,9 +29,9 @@ W, H, SS = 160, 120, 4
 def setup(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
     import mitsuba as mi
 
-    from device.core.imageio import read_hdr_image
-    from hostlink.relight.scene import load_scene
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.core.imageio import read_hdr_image
+    from lightprobe.hostlink.relight.scene import load_scene
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     mi.set_variant("scalar_rgb")
     d = tmp_path_factory.mktemp("mitsuba")
@@ -69,7 +69,7 @@ def setup(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):  # type:
 
 
 def _interior(rl, cam) -> np.ndarray:  # type: ignore[no-untyped-def]
-    from hostlink.relight.raster import rasterize
+    from lightprobe.hostlink.relight.raster import rasterize
 
     ras = rasterize(cam, rl.vertices, rl.faces, rays=False)
     ends = np.cumsum([len(o.faces) for o in rl.objects])
@@ -84,7 +84,7 @@ def _interior(rl, cam) -> np.ndarray:  # type: ignore[no-untyped-def]
 
 
 def _rel_rmse(img: np.ndarray, ref: np.ndarray, m: np.ndarray) -> float:
-    from device.core.sphere import luminance
+    from lightprobe.core.sphere import luminance
 
     y, yr = luminance(img[m].astype(np.float64)), luminance(ref[m])
     return float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
@@ -96,8 +96,8 @@ def _area(img: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize(("visibility", "bound"), [("rays", 0.03), ("voxels", 0.03)])
 def test_per_pixel_image_against_mitsuba(setup, visibility: str, bound: float) -> None:  # type: ignore[no-untyped-def]
-    from hostlink.relight.raster import rasterize, resolve
-    from hostlink.relight.sg import SGRelighter
+    from lightprobe.hostlink.relight.raster import rasterize, resolve
+    from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
     scene, env, ref = setup
     rl = SGRelighter(scene, visibility=visibility)

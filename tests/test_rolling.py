@@ -13,8 +13,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from device.hdr.fusion import FusionSettings, packed_lut
-from device.hdr.rolling import RollingMerge, _resum, frame_to_map, lut_bounds
+from lightprobe.device.hdr.fusion import FusionSettings, packed_lut
+from lightprobe.device.hdr.rolling import RollingMerge, _resum, frame_to_map, lut_bounds
 
 K = 16  # fisheye samples per output pixel
 LINEAR = np.repeat(np.linspace(0.0, 1.0, 256)[:, None], 3, axis=1)

@@ -10,16 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.imageio import read_hdr_image, write_exr
-from device.core.lightset import LightSet
-from device.core.sphere import equirect_integral
-from device.sampling.metrics import lights_total
+from lightprobe.core.imageio import read_hdr_image, write_exr
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import equirect_integral
+from lightprobe.device.sampling.metrics import lights_total
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "device.cli", "sample", *args], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "lightprobe.cli", "sample", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=120, check=False)
 
 

@@ -7,20 +7,20 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.sampling.distribution import (
+from lightprobe.device.sampling.distribution import (
     Distribution2D,
     halton,
     invert_linear_sample,
     radical_inverse,
     sample_linear,
 )
-from device.sampling.havran import (
+from lightprobe.device.sampling.havran import (
     disc_to_square,
     hemisphere_to_square,
     square_to_disc,
     square_to_hemisphere,
 )
-from device.sampling.temporal import EnergyFilter, TrajectoryFilter
+from lightprobe.device.sampling.temporal import EnergyFilter, TrajectoryFilter
 
 
 def _func(seed: int = 1, shape: tuple[int, int] = (12, 18)) -> np.ndarray:

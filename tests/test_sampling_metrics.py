@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.core.lightset import LightSet
-from device.core.sphere import equirect_row_solid_angle
-from device.sampling.metrics import (
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import equirect_row_solid_angle
+from lightprobe.device.sampling.metrics import (
     ErrorReference,
     diffuse_irradiance_error,
     fibonacci_normals,

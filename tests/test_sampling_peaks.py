@@ -8,19 +8,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.errors import InputError
-from device.core.imageio import read_hdr_image
-from device.core.sphere import (
+from lightprobe.core.errors import InputError
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.sphere import (
     coarse_equirect,
     directions_from_angles,
     equirect_integral,
     equirect_row_solid_angle,
     luminance,
 )
-from device.sampling.metrics import ErrorReference
-from device.sampling.peaks import choose_light_count, find_peaks
-from device.sampling.q2tree import Q2TreeSampler
-from sim.scene import rasterize_disc
+from lightprobe.device.sampling.metrics import ErrorReference
+from lightprobe.device.sampling.peaks import choose_light_count, find_peaks
+from lightprobe.device.sampling.q2tree import Q2TreeSampler
+from lightprobe.sim.scene import rasterize_disc
 
 H = 256
 DISCS = [  # (theta deg, phi deg, radius deg, grey radiance): one plain, one across phi = 0,

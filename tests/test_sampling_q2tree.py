@@ -7,13 +7,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.errors import InputError
-from device.core.healpix import equirect_to_healpix, vec2pix_nest
-from device.core.imageio import read_hdr_image
-from device.core.lightset import LightSet
-from device.core.sphere import equirect_integral, equirect_solid_angle
-from device.sampling.q2tree import Q2TreeSampler, auto_nside, nodes_to_uniq, uniq_to_nodes
-from device.sampling.registry import make_sampler
+from lightprobe.core.errors import InputError
+from lightprobe.core.healpix import equirect_to_healpix, vec2pix_nest
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import equirect_integral, equirect_solid_angle
+from lightprobe.device.sampling.q2tree import (
+    Q2TreeSampler,
+    auto_nside,
+    nodes_to_uniq,
+    uniq_to_nodes,
+)
+from lightprobe.device.sampling.registry import make_sampler
 
 NSIDE = 16
 
@@ -434,8 +439,8 @@ def test_unchanged_frames_skip_the_update_and_equal_the_full_update() -> None:
 def test_one_pass_lights_equal_leaf_arrays_then_regrouping(placement: str) -> None:
     """``emit_lights`` (one compiled pass) gives the bits of ``leaf_arrays`` + jitter points +
     ``regroup_worst`` (the path taken when a jitter point is not memoised yet)."""
-    from device.sampling.q2tree import _kernels
-    from device.sampling.q2tree._nodes import level_solid_angles, state_pyramid
+    from lightprobe.device.sampling.q2tree import _kernels
+    from lightprobe.device.sampling.q2tree._nodes import level_solid_angles, state_pyramid
 
     rng = np.random.default_rng(12)
     m = _random_map(rng)

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.imageio import read_hdr_image
-from device.sampling.metrics import ErrorReference
-from device.sampling.q2tree import Q2TreeSampler
-from device.sampling.registry import available_samplers, make_sampler
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.device.sampling.metrics import ErrorReference
+from lightprobe.device.sampling.q2tree import Q2TreeSampler
+from lightprobe.device.sampling.registry import available_samplers, make_sampler
 
 COUNT = 256
 KINDS = ("diffuse", "occluded")

@@ -1,4 +1,4 @@
-"""Q2-Tree on the simulated dynamic scenarios (sim.scenarios), metrics from bench.samplers.
+"""Q2-Tree on the simulated dynamic scenarios (lightprobe.sim.scenarios), metrics from lightprobe.bench.samplers.
 
 Measured (N = 256, 30 fps, default Q2TreeSampler, hysteresis 0.2): flashlight (60 frames)
 flicker 0.00021 vs Pharr 0.00364 (ratio 0.06), mean error 0.00087 vs 0.0140; switch
@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.samplers import temporal_metrics, temporal_run
-from device.sampling.q2tree import Q2TreeSampler
-from device.sampling.registry import make_sampler
+from lightprobe.bench.samplers import temporal_metrics, temporal_run
+from lightprobe.device.sampling.q2tree import Q2TreeSampler
+from lightprobe.device.sampling.registry import make_sampler
 
 COUNT = 256
 

@@ -7,20 +7,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.imageio import read_hdr_image
-from device.core.lightset import LightSet
-from device.core.sphere import (
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import (
     angles_from_directions,
     equirect_integral,
     equirect_row_solid_angle,
     luminance,
 )
-from device.sampling.base import sanitize_radiance
-from device.sampling.havran import hemisphere_to_square
-from device.sampling.hemigon import LOWER_ID_OFFSET, HemigonSampler, split_count
-from device.sampling.metrics import ErrorReference, lights_total
-from device.sampling.pharr import PharrSampler
-from device.sampling.registry import available_samplers, make_sampler
+from lightprobe.device.sampling.base import sanitize_radiance
+from lightprobe.device.sampling.havran import hemisphere_to_square
+from lightprobe.device.sampling.hemigon import LOWER_ID_OFFSET, HemigonSampler, split_count
+from lightprobe.device.sampling.metrics import ErrorReference, lights_total
+from lightprobe.device.sampling.pharr import PharrSampler
+from lightprobe.device.sampling.registry import available_samplers, make_sampler
 
 METHODS = ["pharr", "hemigon", "median-cut"]
 
@@ -249,8 +249,8 @@ def test_lightset_json_roundtrip_keeps_ambient() -> None:
 def test_median_cut_regions_from_energy_match_the_sampler(maps: dict[str, np.ndarray]) -> None:
     """The public ``median_cut_regions`` (energy in) and the sampler's one-pass summed-area table
     cut the same rectangles, and the lights sum each rectangle's pixels exactly."""
-    from device.sampling.median_cut import median_cut_regions
-    from device.sampling.pharr import prepare_density
+    from lightprobe.device.sampling.median_cut import median_cut_regions
+    from lightprobe.device.sampling.pharr import prepare_density
 
     img = maps["lebombo_1k.hdr"]
     energy = prepare_density(img)[0]

@@ -1,4 +1,4 @@
-"""Temporal behaviour on the simulated scenarios (sim.scenarios), measured as in the benchmark."""
+"""Temporal behaviour on the simulated scenarios (lightprobe.sim.scenarios), measured as in the benchmark."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.samplers import temporal_metrics, temporal_run
-from device.sampling.registry import make_sampler
+from lightprobe.bench.samplers import temporal_metrics, temporal_run
+from lightprobe.device.sampling.registry import make_sampler
 
 
 @pytest.fixture(scope="module")
 def flashlight(shared_data: Path) -> dict[str, dict[str, float]]:
-    from bench.samplers import _Scenario
+    from lightprobe.bench.samplers import _Scenario
 
     sc = _Scenario("flashlight", 60, shared_data)
     return {m: temporal_metrics(temporal_run(sc, make_sampler(m), 256)) for m in ("pharr", "hemigon")}
@@ -34,7 +34,7 @@ def test_flashlight_errors_stay_bounded(flashlight: dict[str, dict[str, float]])
 
 
 def _spot_map(phi_deg: float) -> np.ndarray:
-    from device.core.sphere import directions_from_angles, equirect_directions
+    from lightprobe.core.sphere import directions_from_angles, equirect_directions
 
     d = equirect_directions(64)
     img = np.full((64, 128, 3), 0.01, np.float32)
@@ -46,7 +46,7 @@ def _spot_map(phi_deg: float) -> np.ndarray:
 def test_trajectory_filter_reset_prevents_ghost_lights() -> None:
     """A lamp jumps 120 deg between frames: with the reset, lights are at the new lamp at once;
     without it, filtered lights sweep across the sky (ghosts) between old and new place."""
-    from device.core.sphere import directions_from_angles
+    from lightprobe.core.sphere import directions_from_angles
 
     new = directions_from_angles(np.radians(60.0), np.radians(150.0))
     power_near_new = {}

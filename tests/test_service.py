@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from service_harness import running_service, service_config, sim_factories
 
-from device.core.sphere import equirect_integral
-from device.service.config import load_config
+from lightprobe.core.sphere import equirect_integral
+from lightprobe.device.service.config import load_config
 
 
 async def _get_json(c: aiohttp.ClientSession, url: str, **kw: Any) -> tuple[int, Any]:
@@ -46,7 +46,7 @@ async def test_lights_arrive_on_the_websocket_in_order(tmp_path: Path) -> None:
 async def test_read_endpoints(tmp_path: Path) -> None:
     import cv2
 
-    from device.core.imageio import read_exr_header, read_hdr_image
+    from lightprobe.core.imageio import read_exr_header, read_hdr_image
 
     cfg = service_config(tmp_path, pipeline={"fps": 4.0, "light_count": 64})
     async with running_service(cfg) as s, aiohttp.ClientSession() as c:
@@ -100,7 +100,7 @@ async def test_read_endpoints(tmp_path: Path) -> None:
         assert code == 200
         assert h["ok"] is True
         # the binary Q2-Tree for host-side merging (routes.q2tree, wired into the app)
-        from device.core.q2wire import decode_q2tree
+        from lightprobe.core.q2wire import decode_q2tree
 
         async with c.get(s.api + "/q2tree", params={"count": "16"}) as r:
             assert r.status == 200

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from calibration.store import CalibrationStore, load_calibration
-from device.core.calibration import Photometric
-from device.core.errors import InputError
-from sim.camera import SimCamera
+from lightprobe.calibration.store import CalibrationStore, load_calibration
+from lightprobe.core.calibration import Photometric
+from lightprobe.core.errors import InputError
+from lightprobe.sim.camera import SimCamera
 
 
 def test_store_wins_over_the_simulators_truth_and_survives_a_corrupt_current(tmp_path: Path) -> None:

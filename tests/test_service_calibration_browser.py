@@ -12,7 +12,7 @@ import pytest
 from service_harness import running_service, service_config
 from test_service_calibration_live import fast_schedule, fresh_lights_on, sim_factories, wait_for
 
-from calibration.store import CalibrationStore
+from lightprobe.calibration.store import CalibrationStore
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(600)]
 

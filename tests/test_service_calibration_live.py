@@ -1,5 +1,5 @@
 """Live calibration through the real service on the simulator: a simulated technician holds a
-checkerboard (sim.board.BoardSchedule via SimCamera.show_board), the HTTP API runs the session,
+checkerboard (lightprobe.sim.board.BoardSchedule via SimCamera.show_board), the HTTP API runs the session,
 commit stores a calibration and the pipeline resumes on it. Bad input gets 4xx naming the
 parameter and never disturbs the calibration in use."""
 
@@ -14,9 +14,9 @@ import aiohttp
 import pytest
 from service_harness import running_service, service_config
 
-from calibration.store import CalibrationStore
-from device.core.errors import InputError
-from device.service.routes.calibration import image_circle, parse_start
+from lightprobe.calibration.store import CalibrationStore
+from lightprobe.core.errors import InputError
+from lightprobe.device.service.routes.calibration import image_circle, parse_start
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -25,13 +25,13 @@ BOARD = {"cols": 9, "rows": 6, "square": 0.04}
 
 def fast_schedule() -> Any:
     """The technician's sweep with short holds (virtual time: 9 frames still, 3 moving)."""
-    from sim.board import BoardSchedule
+    from lightprobe.sim.board import BoardSchedule
 
     return BoardSchedule.technician(hold_s=0.3, move_s=0.1)
 
 
 def sim_factories(tmp_path: Path) -> tuple[Any, Any]:
-    from device.cli.bootstrap import camera_factory, pipeline_factory
+    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
 
     return camera_factory("sim", "flashlight"), pipeline_factory(tmp_path / "state", "calprobe0001")
 
@@ -79,7 +79,7 @@ def test_parse_start_names_the_field_at_fault() -> None:
 
 
 def test_image_circle_from_mask_fisheye_or_frame() -> None:
-    from sim.camera import SimCamera
+    from lightprobe.sim.camera import SimCamera
 
     truth = SimCamera("room").truth_calibration()
     assert truth.mask is not None

@@ -1,7 +1,7 @@
 """``lightprobe serve`` / ``lightprobe token`` as processes: startup output, token file, sd_notify
 (READY, WATCHDOG, STOPPING) over an abstract socket, SIGTERM -> exit within 3 s with WebSockets
 closed. The real ``lightprobe serve`` on the simulator (tests/service_harness.py run as a script:
-``device.cli.serve.main`` with the session's table cache linked into the state dir)."""
+``lightprobe.cli.serve.main`` with the session's table cache linked into the state dir)."""
 
 from __future__ import annotations
 
@@ -116,14 +116,14 @@ async def test_serve_notify_token_and_sigterm(tmp_path: Path) -> None:
         ns.close()
     # lightprobe token prints the same token
     out = await asyncio.to_thread(
-        subprocess.run, [sys.executable, "-m", "device.cli", "token", "--state-dir", str(state)],
+        subprocess.run, [sys.executable, "-m", "lightprobe.cli", "token", "--state-dir", str(state)],
         cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=30)
     assert out.returncode == 0
     assert out.stdout.strip() == token
 
 
 def test_token_command_creates_0600(tmp_path: Path) -> None:
-    run: Any = lambda *a: subprocess.run([sys.executable, "-m", "device.cli", "token", *a], cwd=ROOT,  # noqa: E731
+    run: Any = lambda *a: subprocess.run([sys.executable, "-m", "lightprobe.cli", "token", *a], cwd=ROOT,  # noqa: E731
                                          env=_env(), capture_output=True, text=True, timeout=30)
     r = run("--state-dir", str(tmp_path / "s"), "--no-create")
     assert r.returncode == 1
@@ -151,7 +151,7 @@ def test_serve_bad_arguments_exit_2(tmp_path: Path) -> None:
 async def test_serve_auto_without_hardware_stays_up_and_serves_no_lights(tmp_path: Path) -> None:
     """``--camera auto`` never falls back to the simulator: with no camera hardware the service
     answers, says why in /status, keeps retrying and serves no lights at all."""
-    from drivers.discovery import list_cameras
+    from lightprobe.drivers.discovery import list_cameras
 
     if list_cameras(include_plugins=False):
         import pytest

@@ -1,5 +1,5 @@
-"""The service with the REAL pipeline (device.pipeline.Pipeline) on the simulated probe
-(sim.camera.SimCamera), real aiohttp server on 127.0.0.1: lights stream soon after start, the
+"""The service with the REAL pipeline (lightprobe.device.pipeline.Pipeline) on the simulated probe
+(lightprobe.sim.camera.SimCamera), real aiohttp server on 127.0.0.1: lights stream soon after start, the
 brightest light follows the flashlight, a 5 s simulated disconnect turns lights stale and fresh
 lights resume after the camera comes back; and ``lightprobe serve`` as a process, exec to first
 lights.
@@ -25,8 +25,8 @@ from service_harness import running_service, service_config
 
 pytestmark = pytest.mark.slow
 
-pytest.importorskip("device.pipeline")
-pytest.importorskip("sim.camera")
+pytest.importorskip("lightprobe.device.pipeline")
+pytest.importorskip("lightprobe.sim.camera")
 
 HANG_GUARD_S = 20.0
 
@@ -45,11 +45,11 @@ async def _next_lights(ws: aiohttp.ClientWebSocketResponse, within: float) -> di
 def table_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A state cache with the projection tables (service defaults) and the simulator's lens
     matrices for the scenes used here, built by the real code, once per session."""
-    from device.cli.bootstrap import PipelineFactory
-    from device.projection import Projector
-    from device.service.config import ServiceConfig
-    from sim._lenscache import load_render_matrix
-    from sim.camera import SimCamera
+    from lightprobe.device.bootstrap import PipelineFactory
+    from lightprobe.device.projection import Projector
+    from lightprobe.device.service.config import ServiceConfig
+    from lightprobe.sim._lenscache import load_render_matrix
+    from lightprobe.sim.camera import SimCamera
 
     cache = tmp_path_factory.mktemp("state-cache")
     pc = PipelineFactory(cache, "x").pipeline_config(ServiceConfig())
@@ -70,7 +70,7 @@ def _state_with_cache(tmp_path: Path, cache: Path) -> Path:
 
 @pytest.mark.timeout(300)
 async def test_real_pipeline_stream_flashlight_and_disconnect(tmp_path: Path, table_cache: Path) -> None:
-    from device.cli.bootstrap import camera_factory, pipeline_factory
+    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
 
     state = _state_with_cache(tmp_path, table_cache)
     cfg = service_config(tmp_path, pipeline={"fps": 30.0, "light_count": 64, "sampler": "q2tree"})
@@ -142,7 +142,7 @@ async def test_real_pipeline_stream_flashlight_and_disconnect(tmp_path: Path, ta
 @pytest.mark.timeout(300)
 def test_serve_process_exec_to_first_lights(tmp_path: Path, table_cache: Path) -> None:
     """``lightprobe serve --camera sim --scene lebombo`` as a process: exec -> API -> lights."""
-    from bench.service_startup import exec_to_lights
+    from lightprobe.bench.service_startup import exec_to_lights
 
     r = exec_to_lights(_state_with_cache(tmp_path, table_cache), "lebombo", timeout=HANG_GUARD_S)
     print(f"\nprocess warm start: API {r['api_s']:.2f} s, first lights {r['lights_s']:.2f} s after exec "

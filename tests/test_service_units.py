@@ -1,4 +1,4 @@
-"""Small pure parts of the service: the tone mapper (device.tonemap, both previews), sd_notify,
+"""Small pure parts of the service: the tone mapper (lightprobe.device.tonemap, both previews), sd_notify,
 token file, TOML writer."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.service.auth import check_bearer, load_or_create_token, read_token
-from device.service.config import SCHEMA, ServiceConfig, dump_toml
-from device.service.notify import Notifier
-from device.tonemap import log_average_key, tone_map
+from lightprobe.device.service.auth import check_bearer, load_or_create_token, read_token
+from lightprobe.device.service.config import SCHEMA, ServiceConfig, dump_toml
+from lightprobe.device.service.notify import Notifier
+from lightprobe.device.tonemap import log_average_key, tone_map
 
 
 def test_tonemap_degenerate_inputs() -> None:
@@ -116,7 +116,7 @@ def test_every_api_route_is_documented(tmp_path: Path) -> None:
 
     from service_harness import sim_factories
 
-    from device.service.app import create_app
+    from lightprobe.device.service.app import create_app
 
     app = create_app(ServiceConfig(), *sim_factories(tmp_path), token="t", probe_id="p")
     doc = json.loads((Path(__file__).resolve().parent.parent / "device/service/static/openapi.json").read_text())
@@ -125,7 +125,7 @@ def test_every_api_route_is_documented(tmp_path: Path) -> None:
 
 
 def test_mdns_interfaces_follow_the_listen_address() -> None:
-    from device.service.app import _mdns_interfaces
+    from lightprobe.device.service.app import _mdns_interfaces
 
     assert _mdns_interfaces([], "127.0.0.1") == ["127.0.0.1"]  # make run: never advertise elsewhere
     assert _mdns_interfaces([], "0.0.0.0") == []  # all interfaces
@@ -134,7 +134,7 @@ def test_mdns_interfaces_follow_the_listen_address() -> None:
 
 
 def test_numba_cache_goes_to_the_state_dir_only_when_the_package_is_read_only(tmp_path: Path) -> None:
-    from device.cli.serve import numba_cache_dir
+    from lightprobe.cli.serve import numba_cache_dir
 
     state = tmp_path / "state"
     read_only = tmp_path / "missing-package"  # os.access(..., W_OK) is False (root ignores modes)
@@ -146,7 +146,7 @@ def test_numba_cache_goes_to_the_state_dir_only_when_the_package_is_read_only(tm
 
 
 def test_one_blas_thread_unless_set() -> None:
-    from device.cli.serve import single_blas_thread
+    from lightprobe.cli.serve import single_blas_thread
 
     env: dict[str, str] = {}
     single_blas_thread(env)
@@ -163,8 +163,8 @@ def test_first_frame_kernels_load_with_the_tables_not_after_the_burst(tmp_path: 
 
     import numba.core.caching as caching
 
-    from device.pipeline import Pipeline, PipelineConfig
-    from sim.camera import SimCamera
+    from lightprobe.device.pipeline import Pipeline, PipelineConfig
+    from lightprobe.sim.camera import SimCamera
 
     loaded: list[str] = []
     orig = caching.Cache.load_overload
@@ -199,7 +199,7 @@ def test_service_packages_never_import_healpy() -> None:
     import re
 
     root = Path(__file__).resolve().parents[1]
-    offenders = [str(f.relative_to(root)) for pkg in ("device", "drivers", "sim", "calibration", "hostlink", "bench")
+    offenders = [str(f.relative_to(root)) for pkg in ("core", "cli", "device", "drivers", "sim", "calibration", "hostlink", "bench")
                  for f in (root / pkg).rglob("*.py")
                  if re.search(r"^\s*(import|from)\s+healpy\b", f.read_text(), re.M)]
     assert offenders == []
@@ -216,7 +216,7 @@ def test_numba_cache_dir_really_caches_the_service_kernels(tmp_path: Path) -> No
 
     root = Path(__file__).resolve().parent.parent
     code = ("import numpy as np\n"
-            "from device.core.sparse import spmv_rgb\n"
+            "from lightprobe.device.projection.sparse import spmv_rgb\n"
             "out = np.zeros((1, 3), np.float32)\n"
             "spmv_rgb(np.array([0, 1], np.int32), np.array([0], np.int32), np.array([2.0], np.float32),"
             " np.ones((1, 3), np.float32), out)\n"

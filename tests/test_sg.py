@@ -14,18 +14,18 @@ import numpy as np
 import pytest
 from service_harness import running_service, service_config
 
-from device.core.imageio import read_hdr_image
-from device.core.lightset import LightSet
-from device.core.sg import SGLighting, lobe_integral, sharpness_from_resultant, triple_integral
-from device.core.sgfit import fit_sg
-from device.core.sphere import (
+from lightprobe.core.imageio import read_hdr_image
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sg import SGLighting, lobe_integral, sharpness_from_resultant, triple_integral
+from lightprobe.core.sphere import (
     coarse_equirect,
     equirect_directions,
     equirect_integral,
     equirect_row_solid_angle,
     luminance,
 )
-from device.sampling.metrics import ErrorReference
+from lightprobe.device.formats.sgfit import fit_sg
+from lightprobe.device.sampling.metrics import ErrorReference
 
 ENVMAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr", "lebombo_1k.hdr",
            "dikhololo_night_1k.hdr", "interior_blender.exr"]
@@ -85,8 +85,8 @@ def test_region_excess_equals_the_dilation_reference() -> None:
     touching each other's rings, at the map's border and cut by ``rows``."""
     from scipy import ndimage
 
-    from device.core.components import block_pixels
-    from device.core.sgfit import _region_excess
+    from lightprobe.device.formats.bright_regions import block_pixels
+    from lightprobe.device.formats.sgfit import _region_excess
 
     rng = np.random.default_rng(5)
     ch, f = 16, 2
@@ -149,7 +149,7 @@ def test_sg_fit_keeps_energy_shrinks_the_residual_and_reproduces_irradiance(shar
 
 @pytest.mark.parametrize("scenario", ["switch", "flashlight"])
 def test_peak_lobe_finds_the_lamp(shared_data: Path, scenario: str) -> None:
-    from sim.scenarios import load_scene
+    from lightprobe.sim.scenarios import load_scene
 
     scene = load_scene(scenario, shared_data=shared_data)
     checked = 0
@@ -183,7 +183,7 @@ def test_degenerate_maps() -> None:
     sg = fit_sg(sun)
     assert sg.kinds.count("peak") >= 1
     assert abs(float(sg.energy().sum(axis=0) @ Y) / float(equirect_integral(sun) @ Y) - 1) <= 0.01
-    from device.core.errors import InputError
+    from lightprobe.core.errors import InputError
 
     with pytest.raises(InputError, match="equirect"):
         fit_sg(np.zeros((100, 100, 3), np.float32))
@@ -195,7 +195,7 @@ def test_json_round_trip(shared_data: Path) -> None:
     assert back.kinds == sg.kinds
     assert np.allclose(back.axes, sg.axes, atol=1e-6)
     assert np.allclose(back.amplitude, sg.amplitude)
-    from device.core.errors import InputError
+    from lightprobe.core.errors import InputError
 
     with pytest.raises(InputError):
         SGLighting.from_json({"version": 2, "lobes": []})
@@ -224,7 +224,7 @@ async def test_service_serves_sg_and_streams_it_on_request(tmp_path: Path) -> No
         assert lobe["kind"] in ("peak", "residual")
         async with c.get(s.api + "/sg?x=1") as r:
             assert r.status == 400
-        from hostlink.client import ProbeClient
+        from lightprobe.hostlink.client import ProbeClient
 
         async with ProbeClient(s.url, timeout=60) as cl:
             typed = await cl.sg()

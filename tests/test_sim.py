@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.calibration import Calibration
-from device.core.errors import InputError
-from device.core.sphere import CAMERA_TO_PROBE, directions_from_angles
-from drivers.base import (
+from lightprobe.core.calibration import Calibration
+from lightprobe.core.errors import InputError
+from lightprobe.core.sphere import CAMERA_TO_PROBE, directions_from_angles
+from lightprobe.drivers.base import (
     Camera,
     CameraDisconnected,
     CameraError,
@@ -24,9 +24,9 @@ from drivers.base import (
     Mode,
     PixelFormat,
 )
-from sim.camera import SimCamera
-from sim.scenarios import SCENARIOS, load_scene
-from sim.scene import DynamicLight, Scene
+from lightprobe.sim.camera import SimCamera
+from lightprobe.sim.scenarios import SCENARIOS, load_scene
+from lightprobe.sim.scene import DynamicLight, Scene
 
 
 def flat_scene(level: float = 1.0, height: int = 512) -> Scene:

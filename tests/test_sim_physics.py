@@ -9,11 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.core.sphere import directions_from_angles, equirect_integral, equirect_row_solid_angle
-from drivers.base import PixelFormat
-from sim.lens import standard_lens
-from sim.scene import DynamicLight, Scene, disc_energy, rasterize_disc
-from sim.sensor import ResponseCurve, SensorModel, raw_levels
+from lightprobe.core.sphere import (
+    directions_from_angles,
+    equirect_integral,
+    equirect_row_solid_angle,
+)
+from lightprobe.drivers.base import PixelFormat
+from lightprobe.sim.lens import standard_lens
+from lightprobe.sim.scene import DynamicLight, Scene, disc_energy, rasterize_disc
+from lightprobe.sim.sensor import ResponseCurve, SensorModel, raw_levels
 
 
 # ---- dynamic lights -----------------------------------------------------------------------------
@@ -74,7 +78,7 @@ def test_render_of_uniform_map_is_uniform_inside_the_circle(vga_lens) -> None:  
 
 @pytest.mark.parametrize("name", ["lebombo_1k.hdr", "studio_small_03_1k.hdr", "rooitou_park_1k.hdr"])
 def test_render_is_area_correct_over_the_visible_cap(vga_lens, name: str, envmap_paths: dict[str, Path]) -> None:  # type: ignore[no-untyped-def]
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     eq = read_hdr_image(envmap_paths[name])
     eq[eq.shape[0] // 2 :] = 0  # keep the upper hemisphere (the lens sees 185 deg)
@@ -85,7 +89,7 @@ def test_render_is_area_correct_over_the_visible_cap(vga_lens, name: str, envmap
 
 
 def test_render_is_area_correct_in_the_large_mode(envmap_paths: dict[str, Path]) -> None:
-    from device.core.imageio import read_hdr_image
+    from lightprobe.core.imageio import read_hdr_image
 
     lens = standard_lens(1280, 960)
     eq = read_hdr_image(envmap_paths["interior_blender.exr"])  # tiny 3e4 lamps: a hard case
@@ -118,10 +122,10 @@ def test_pixel_solid_angle_matches_the_lens_jacobian(vga_lens) -> None:  # type:
 
 
 def test_render_matrix_arrays_apply_as_scipy_does() -> None:
-    """The frame path's CSR loops (device.core.sparse, no SciPy at run time) against SciPy on a random
+    """The frame path's CSR loops (lightprobe.device.projection.sparse, no SciPy at run time) against SciPy on a random
     matrix with empty rows and columns: the product, the transpose and a combination of rows."""
     sp = pytest.importorskip("scipy.sparse")
-    from device.core.sparse import Csr
+    from lightprobe.device.projection.sparse import Csr
 
     rng = np.random.default_rng(7)
     a = sp.random(300, 500, density=0.02, random_state=8, format="csr", dtype=np.float32)

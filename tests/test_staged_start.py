@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.core.sphere import equirect_integral
-from device.pipeline import Pipeline, PipelineConfig
-from sim.camera import SimCamera
+from lightprobe.core.sphere import equirect_integral
+from lightprobe.device.pipeline import Pipeline, PipelineConfig
+from lightprobe.sim.camera import SimCamera
 
 pytestmark = pytest.mark.slow
 
@@ -41,9 +41,9 @@ async def _run(cache: Path, frames: int, until_balanced: bool) -> tuple[Pipeline
 
 
 async def test_a_fresh_state_dir_starts_coarse_then_swaps_in_the_balanced_table(tmp_path: Path) -> None:
-    from device.projection.projector import _TABLE_CACHE
+    from lightprobe.device.projection.projector import TABLE_CACHE
 
-    _TABLE_CACHE.clear()  # a fresh process: nothing built yet
+    TABLE_CACHE.clear()  # a fresh process: nothing built yet
     pipe, results, balanced = await _run(tmp_path, 3, until_balanced=True)
     assert balanced[0] is False  # the first lights came from the coarse table
     assert balanced[-1] is True
@@ -57,12 +57,12 @@ async def test_a_fresh_state_dir_starts_coarse_then_swaps_in_the_balanced_table(
     assert results[0].lights.total.sum() > 0
     # the coarse table is not kept once the balanced one serves (memory on the board); a frame
     # result keeps the table it was made with (its preview), so the old results go first
-    assert any(k[-1] != "coarse" for k in _TABLE_CACHE)
+    assert any(k[-1] != "coarse" for k in TABLE_CACHE)
     del results, r
     gc.collect()
-    assert not [k for k in _TABLE_CACHE if k[-1] == "coarse"]
+    assert not [k for k in TABLE_CACHE if k[-1] == "coarse"]
     # the next start loads the balanced table from the state dir: no coarse table, no rebuild
-    _TABLE_CACHE.clear()
+    TABLE_CACHE.clear()
     pipe2, _, balanced2 = await _run(tmp_path, 1, until_balanced=False)
     assert balanced2 == [True]
     assert pipe2._geo.projector.balanced

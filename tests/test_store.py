@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.store import CalibrationStore, CorruptCalibration
-from device.core.calibration import Calibration, Photometric, Pose
-from device.core.errors import InputError
+from lightprobe.calibration.store import CalibrationStore, CorruptCalibration
+from lightprobe.core.calibration import Calibration, Photometric, Pose
+from lightprobe.core.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -92,8 +92,8 @@ WRITER = """
 import sys, time
 import numpy as np
 sys.path.insert(0, sys.argv[2])
-from device.core.calibration import Calibration, Photometric, Pose
-from calibration.store import CalibrationStore
+from lightprobe.core.calibration import Calibration, Photometric, Pose
+from lightprobe.calibration.store import CalibrationStore
 store = CalibrationStore(sys.argv[1])
 print("ready", flush=True)
 k = 1.0

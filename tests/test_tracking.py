@@ -1,4 +1,4 @@
-"""The lamp tracker (``device.hdr.tracking``): a lamp measured on two frames is drawn where its
+"""The lamp tracker (``lightprobe.device.hdr.tracking``): a lamp measured on two frames is drawn where its
 velocity puts it on a censored frame, with its energy; a static or switched-off lamp is left to
 the merge; what the merge's hold placed near a drawn lamp is taken back."""
 
@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from device.core.sphere import luminance
-from device.hdr.tracking import LampTracker
+from lightprobe.core.sphere import luminance
+from lightprobe.device.hdr.tracking import LampTracker
 
 ROWS, WIDTH = 32, 64
 BG = 1.0

@@ -1,4 +1,4 @@
-"""UVC controls over the REAL pyusb code path, on the simulated device backend (sim.usb)."""
+"""UVC controls over the REAL pyusb code path, on the simulated device backend (lightprobe.sim.usb)."""
 
 from __future__ import annotations
 
@@ -7,15 +7,15 @@ import struct
 import pytest
 import usb.core
 
-from drivers.base import (
+from lightprobe.drivers.base import (
     CameraBusy,
     CameraDisconnected,
     CameraUnavailable,
     ControlNotSupported,
     Controls,
 )
-from drivers.discovery import open_camera
-from drivers.uvc import (
+from lightprobe.drivers.discovery import open_camera
+from lightprobe.drivers.uvc import (
     AE_MANUAL,
     CT_AE_MODE,
     CT_EXPOSURE_TIME_ABSOLUTE,
@@ -25,9 +25,15 @@ from drivers.uvc import (
     parse_vc_descriptors,
     v4l2_controls_with_uvc_fallback,
 )
-from drivers.v4l2.camera import V4L2Camera
-from sim.usb import EXTENSION_GUID, SimUsbBackend, SimUvcDevice, SimUvcFrames, _vc_descriptors
-from sim.v4l2_fake import FakeV4L2Node
+from lightprobe.drivers.v4l2.camera import V4L2Camera
+from lightprobe.sim.usb import (
+    EXTENSION_GUID,
+    SimUsbBackend,
+    SimUvcDevice,
+    SimUvcFrames,
+    _vc_descriptors,
+)
+from lightprobe.sim.v4l2_fake import FakeV4L2Node
 
 
 @pytest.fixture

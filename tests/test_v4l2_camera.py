@@ -1,4 +1,4 @@
-"""V4L2Camera against the fake ioctl endpoint (sim.v4l2_fake), and the real transport's errors.
+"""V4L2Camera against the fake ioctl endpoint (lightprobe.sim.v4l2_fake), and the real transport's errors.
 
 The fake decodes ioctl numbers and struct bytes with its own kernel offset tables and records
 every call, so these tests check call order, the bytes we send, streaming, drops, the settling
@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from drivers.base import (
+from lightprobe.drivers.base import (
     CameraDisconnected,
     CameraUnavailable,
     ControlNotSupported,
@@ -23,11 +23,11 @@ from drivers.base import (
     Mode,
     PixelFormat,
 )
-from drivers.discovery import open_with_retry
-from drivers.v4l2._ioctl import DeviceTransport, IoctlError
-from drivers.v4l2._structs import ABI32, ABI64, V4L2Abi
-from drivers.v4l2.camera import V4L2Camera
-from sim.v4l2_fake import (
+from lightprobe.drivers.discovery import open_with_retry
+from lightprobe.drivers.v4l2._ioctl import DeviceTransport, IoctlError
+from lightprobe.drivers.v4l2._structs import ABI32, ABI64, V4L2Abi
+from lightprobe.drivers.v4l2.camera import V4L2Camera
+from lightprobe.sim.v4l2_fake import (
     CID_EXPOSURE_ABSOLUTE,
     CID_EXPOSURE_AUTO,
     CID_EXPOSURE_AUTO_PRIORITY,
@@ -243,7 +243,7 @@ async def test_open_with_retry_waits_for_the_camera() -> None:
 async def test_capture_timeout_when_no_frames() -> None:
     _node, cam = await _open(fps=2.0)
     try:
-        from drivers.base import CaptureTimeout
+        from lightprobe.drivers.base import CaptureTimeout
 
         await cam.capture(3.0)
         with pytest.raises(CaptureTimeout):
@@ -261,7 +261,7 @@ def test_real_transport_missing_node(tmp_path: os.PathLike[str]) -> None:
 async def test_real_transport_on_a_non_v4l2_file() -> None:
     t = DeviceTransport("/dev/null")
     try:
-        from drivers.v4l2 import _structs as S
+        from lightprobe.drivers.v4l2 import _structs as S
 
         with pytest.raises(IoctlError) as ei:
             t.ioctl(t.abi.VIDIOC_QUERYCAP, S.v4l2_capability())
@@ -282,8 +282,8 @@ HIL = os.environ.get("LIGHTPROBE_HIL_CAMERA", "")
 @pytest.mark.hardware
 @pytest.mark.skipif(not HIL.startswith("v4l2:"), reason="set LIGHTPROBE_HIL_CAMERA=v4l2:/dev/v4l/by-id/...")
 async def test_hardware_v4l2_node_modes_and_controls() -> None:
-    from drivers.v4l2.camera import enumerate_modes
-    from drivers.v4l2.controls import V4L2Controls
+    from lightprobe.drivers.v4l2.camera import enumerate_modes
+    from lightprobe.drivers.v4l2.controls import V4L2Controls
 
     t = DeviceTransport(HIL.split(":", 1)[1])
     try:

@@ -1,4 +1,4 @@
-"""Pixel conversions (drivers.v4l2.convert): YUYV, MJPEG, GREY, RGB24, Bayer 8/10/12/16-bit."""
+"""Pixel conversions (lightprobe.drivers.v4l2.convert): YUYV, MJPEG, GREY, RGB24, Bayer 8/10/12/16-bit."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.v4l2 import _structs as S
-from drivers.v4l2.convert import CorruptFrame, bayer_to_rgb, buffer_to_rgb, mosaic
-from sim.v4l2_fake import rgb_to_yuyv
+from lightprobe.drivers.v4l2 import _structs as S
+from lightprobe.drivers.v4l2.convert import CorruptFrame, bayer_to_rgb, buffer_to_rgb, mosaic
+from lightprobe.sim.v4l2_fake import rgb_to_yuyv
 
 RNG = np.random.default_rng(1234)
 

@@ -1,4 +1,4 @@
-"""The settling rule for cameras without per-frame exposure metadata (drivers.v4l2.settle)."""
+"""The settling rule for cameras without per-frame exposure metadata (lightprobe.drivers.v4l2.settle)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.v4l2.settle import SettleTracker, frame_level
+from lightprobe.drivers.v4l2.settle import SettleTracker, frame_level
 
 
 def _level(exposure: float, gamma: float = 1.0, k: float = 10.0) -> float:

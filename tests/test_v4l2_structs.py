@@ -1,4 +1,4 @@
-"""Struct layouts and ioctl numbers of drivers.v4l2._structs against the kernel's videodev2.h.
+"""Struct layouts and ioctl numbers of lightprobe.drivers.v4l2._structs against the kernel's videodev2.h.
 
 Two independent checks: (1) sizes, offsets and ioctl numbers written down from videodev2.h for
 LP64 (aarch64/x86_64) and 32-bit ARM EABI; (2) when a C compiler and the kernel headers are
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from drivers.v4l2 import _structs as S
-from drivers.v4l2._structs import ABI32, ABI64, V4L2Abi, fourcc, fourcc_str, ioc
+from lightprobe.drivers.v4l2 import _structs as S
+from lightprobe.drivers.v4l2._structs import ABI32, ABI64, V4L2Abi, fourcc, fourcc_str, ioc
 
 # (struct, LP64 size, ARM EABI size) from videodev2.h
 KERNEL_SIZES = {

@@ -12,8 +12,8 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from device.core.errors import InputError
-from device.service.viewmesh import MAX_BYTES, load_view_mesh
+from lightprobe.core.errors import InputError
+from lightprobe.device.service.viewmesh import MAX_BYTES, load_view_mesh
 
 
 def test_the_shared_cow_is_read_as_the_page_draws_it(shared_data: Path) -> None:
@@ -113,7 +113,7 @@ async def test_put_config_checks_a_new_mesh_before_saving_it(tmp_path: Path, sha
     ``service.host`` that does not resolve; a good one is saved and pending a restart."""
     from service_harness import running_service, service_config
 
-    from device.service.config import load_config
+    from lightprobe.device.service.config import load_config
 
     bad = tmp_path / "bad.obj"
     bad.write_text("v 0 0 0\nf 1 2 3\n")

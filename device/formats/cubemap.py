@@ -51,8 +51,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from device.core.errors import InputError
-from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
+from lightprobe.core.errors import InputError
+from lightprobe.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
 
 __all__ = ["FACES", "FACE_NAMES", "Cubemap", "CubemapFilter", "face_directions", "ggx_weight", "mip_roughness",
            "sample_equirect"]
@@ -108,7 +108,7 @@ def _cells(rows: int, cols: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     """Where unit directions (n, 3) fall in a (rows, cols) equirect grid of cell centres: the
     cell at or before each (row ``y0``, column ``x0``, unwrapped) and the fractions ``fy``, ``fx``
     beyond it."""
-    from device.core.sphere import angles_from_directions
+    from lightprobe.core.sphere import angles_from_directions
 
     theta, phi = angles_from_directions(d)
     y = theta / math.pi * rows - 0.5
@@ -266,7 +266,7 @@ def _take_brightest(src: np.ndarray, power: np.ndarray, omega: np.ndarray, count
                     j1: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` pixels of most power (among rows ``j0 .. j1``, the rest is black): their
     directions and powers (3, k) float64, taken out of ``src`` (set to 0 there)."""
-    from device.core.sphere import directions_from_angles
+    from lightprobe.core.sphere import directions_from_angles
 
     h, w = src.shape[:2]
     flat = power[j0:j1].reshape(-1)
@@ -395,7 +395,7 @@ class CubemapFilter:
 
     def brute_force(self, equirect: np.ndarray, mip: int, dirs: np.ndarray) -> np.ndarray:
         """The reference: the filter integral over every pixel of the map at ``dirs`` (k, 3)."""
-        from device.core.sphere import equirect_directions
+        from lightprobe.core.sphere import equirect_directions
 
         a = np.where(np.isfinite(equirect) & (equirect > 0), equirect, 0).astype(np.float64)
         h = a.shape[0]

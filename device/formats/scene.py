@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from device.core.environment import Environment
-from device.core.sh import ZONAL_IRRADIANCE
+from lightprobe.core.sh import ZONAL_IRRADIANCE
+from lightprobe.device.formats.sh_primary import Environment
 
 from .cubemap import FACE_NAMES, FACES, Cubemap
 

@@ -1,4 +1,4 @@
-"""HDR fusion of exposure bursts (:mod:`device.hdr.fusion`) and ``lightprobe fuse`` (:mod:`device.hdr.cli`).
+"""HDR fusion of exposure bursts (:mod:`lightprobe.device.hdr.fusion`) and ``lightprobe fuse`` (:mod:`lightprobe.cli.fuse`).
 
 Importing this package does nothing but import numpy/numba code (no device access, no threads).
 """

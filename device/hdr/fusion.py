@@ -2,7 +2,7 @@
 
 Every frame ``i`` of a stack gives, per pixel and channel, an estimate of the scene radiance
 ``X_i = E(z_i) / (t_i g_i)`` (Debevec & Malik 1997, eq. 6) where ``E`` is the inverse camera
-response (``device.core.calibration.Response.inverse``: pixel value -> relative linear exposure; for RAW
+response (``lightprobe.core.calibration.Response.inverse``: pixel value -> relative linear exposure; for RAW
 frames ``E(z) = (z - black) / (white - black)``), ``t_i`` the exposure time and ``g_i`` the gain.
 The fused value is the weighted mean ``X = sum_i w_i X_i / sum_i w_i`` with
 
@@ -80,11 +80,11 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from device.core.calibration import Response, repair_inverse
-from device.core.errors import InputError
+from lightprobe.core.calibration import Response, repair_inverse
+from lightprobe.core.errors import InputError
 
 if TYPE_CHECKING:
-    from drivers.base import Frame
+    from lightprobe.drivers.base import Frame
 
 __all__ = [
     "FusionResult",
@@ -165,8 +165,8 @@ class FusionResult:
 _SANITIZED: dict[tuple[object, ...], np.ndarray] = {}
 
 
-def _sanitized(inverse: np.ndarray) -> np.ndarray:
-    """:func:`device.core.calibration.repair_inverse`, memoised on the table's bytes (one entry
+def sanitized_inverse(inverse: np.ndarray) -> np.ndarray:
+    """:func:`lightprobe.core.calibration.repair_inverse`, memoised on the table's bytes (one entry
     per response)."""
     inv = np.ascontiguousarray(inverse, dtype=np.float64)
     key = (hash(inv.tobytes()), inv.shape)
@@ -206,7 +206,7 @@ def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
     sigma   sd(z) = sqrt(Var[E(z)]) / (t g)
     with, from the sensor noise model, Var[E] = E_fs^2 (e g / FW + (r g / FW)^2) + (dE/dz)^2 / 12,
     e = E / E_fs; or, when the response carries the scatter it was measured with
-    (``log_sigma``, :func:`calibration.response.code_scatter`), Var[E] = (E(z) sigma(z))^2: that
+    (``log_sigma``, :func:`lightprobe.calibration.response.code_scatter`), Var[E] = (E(z) sigma(z))^2: that
     scatter already holds the camera's real noise (JPEG included), quantisation and the
     response's own error, which a generic sensor model does not know. That scatter is in log
     exposure, so the weight is then the precision of ``ln X``, ``w(z) = h(z) / sigma(z)^2``, and
@@ -407,7 +407,7 @@ def _degenerate(z, lut, lower, p, c, ref, out, sat_mask, inv_mask):  # type: ign
     inv_mask[p] = True
 
 
-def _as_index(frame: np.ndarray, levels: int) -> np.ndarray:
+def as_index(frame: np.ndarray, levels: int) -> np.ndarray:
     """Frame -> LUT row indices. Integers are clipped to the top level; float data are rounded and
     NaN/+Inf (and absurd values) go to row ``levels``, the "invalid sample" row."""
     a = np.asarray(frame)
@@ -466,7 +466,7 @@ def fuse_tables(frames: Sequence[np.ndarray], exposures: Sequence[float], invers
     h, wd = np.shape(frames[0])[:2]
     order = sorted(range(len(frames)), key=lambda i: (tl[i] * gl[i], i))
     levels = max(np.asarray(inverses[i]).shape[0] for i in order)
-    idx = [_as_index(frames[i], levels) for i in order]
+    idx = [as_index(frames[i], levels) for i in order]
     z = np.empty((len(order), h * wd, 3), np.result_type(*[a.dtype for a in idx]))
     for j, a in enumerate(idx):
         z[j] = a.reshape(h * wd, 3)
@@ -500,7 +500,7 @@ def fuse(frames: Sequence[np.ndarray], exposures: Sequence[float], response: Res
          gains: Sequence[float] | None = None, settings: FusionSettings | None = None) -> FusionResult:
     """Debevec-Malik merge of processed frames ((H, W, 3) uint8, or float pixel values that may
     hold NaN/Inf) with a calibrated response. See the module docstring for weights and masks."""
-    inv = _sanitized(response.inverse)
+    inv = sanitized_inverse(response.inverse)
     n = len(frames)
     top = float(inv.shape[0] - 1)
     return fuse_tables(frames, exposures, [inv] * n, [0.0] * n, [top] * n, gains, settings,
@@ -534,7 +534,7 @@ def fuse_raw(frames: Sequence[np.ndarray], exposures: Sequence[float], *, bits: 
 
 def fuse_frames(frames: Sequence[Frame], response: Response | None = None, *,
                 settings: FusionSettings | None = None) -> FusionResult:
-    """Fuse ``drivers.base.Frame`` objects using their metadata (exposure, gain, levels).
+    """Fuse ``lightprobe.drivers.base.Frame`` objects using their metadata (exposure, gain, levels).
 
     RGB8 frames need ``response``; RAW frames use their own black and white levels.
     """

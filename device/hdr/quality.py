@@ -8,14 +8,14 @@
   and OpenCV's) over pixels both find positive.
 - :func:`dynamic_range`: the 99.9th over the 0.1th percentile of positive luminance.
 
-Luminance is Rec. 709 (``device.core.sphere.luminance``); accumulation float64.
+Luminance is Rec. 709 (``lightprobe.core.sphere.luminance``); accumulation float64.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from device.core.sphere import luminance
+from lightprobe.core.sphere import luminance
 
 __all__ = ["dynamic_range", "log_correlation", "subset_consistency"]
 

@@ -10,7 +10,7 @@ with geometric weight ``n_ji`` and gain ``g_i`` (scale / vignetting),
     var(m_j) = sum_i n_ji^2 g_i^2 var(X_i) / (sum_i n_ji)^2
 
 over the unsaturated samples (variances from the response's measured scatter or the sensor
-model, :func:`device.hdr.fusion.packed_lut`). Inside one frame the samples of a pixel share the
+model, :func:`lightprobe.device.hdr.fusion.packed_lut`). Inside one frame the samples of a pixel share the
 exposure and are averaged by geometry alone: weighting them by their own noise would favour the
 ones that came out low and bias the map down. Samples too dark to weigh stay in the mean (with
 a variance as wide as their code range); a footprint with any saturated sample is *censored*:
@@ -23,7 +23,7 @@ the sky around it.
 gain) and fuses them per pixel by inverse variance (running sums, so a frame costs O(1) per
 pixel beyond its own pass). A slot that measures the same value again (within 3 sigma of its
 own last one) averages with its past (``decay``); a lamp whose edge pixels move beyond their
-noise has its energy averaged by the tracker instead (:mod:`device.hdr.tracking`). When a new frame disagrees with the other slots beyond
+noise has its energy averaged by the tracker instead (:mod:`lightprobe.device.hdr.tracking`). When a new frame disagrees with the other slots beyond
 their noise (``k sigma`` plus ``rel_tol``, or its saturation's lower bound lies above them: a
 lamp switched on or off, a flashlight moved), the other slots are dropped at that pixel, so the
 change is in the fused map from this very frame on, never averaged with what was there before.
@@ -39,7 +39,7 @@ saturated pixels nearby that no exposure measures, where the lamp went (:func:`_
 or, if there are none, left where it was: the lamp keeps its energy, and the next short
 exposure (the schedule puts one every other frame) measures it where it is. A lamp switched off
 leaves nothing saturated nearby and is gone in the frame that shows it. That is the fallback: a
-lamp measured on two frames is carried at its velocity by :mod:`device.hdr.tracking` (drawn where
+lamp measured on two frames is carried at its velocity by :mod:`lightprobe.device.hdr.tracking` (drawn where
 it is on the frames that see it only saturated), which takes back what the hold placed near it.
 
 Cost per frame: one pass over the table's non-zeros of the upper hemisphere (~470k at VGA ->
@@ -58,8 +58,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from device.core.sphere import LUM_B, LUM_G, LUM_R
-from device.hdr.tracking import LampTracker
+from lightprobe.core.sphere import LUM_B, LUM_G, LUM_R
+from lightprobe.device.hdr.tracking import LampTracker
 
 # Floating-point contraction (FMA), reciprocal division and signless zeros for the per-frame
 # passes (10% of their time); never the flags that assume no inf or NaN, which they test for.
@@ -69,7 +69,7 @@ __all__ = ["FrameMap", "RollingMerge", "frame_to_map", "lut_bounds", "sum_lut", 
 
 
 def lut_bounds(lut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A packed LUT's (:func:`device.hdr.fusion.packed_lut`) bounds per channel: the value of
+    """A packed LUT's (:func:`lightprobe.device.hdr.fusion.packed_lut`) bounds per channel: the value of
     the highest code below the merge's black threshold (what a too-dark sample may be at most)
     and of the first code at its saturation threshold (what a saturated one is at least)."""
     w, sat = lut[:-1, :, 1], lut[:-1, :, 3]
@@ -97,7 +97,7 @@ class FrameMap:
 
 
 def sum_lut(lut: np.ndarray, dark_val: np.ndarray) -> np.ndarray:
-    """A packed LUT (:func:`device.hdr.fusion.packed_lut`) as the per-code factors of the sums
+    """A packed LUT (:func:`lightprobe.device.hdr.fusion.packed_lut`) as the per-code factors of the sums
     :func:`_terms` takes, so that every sample adds to every sum and none branches: (L + 1, 3, 4)
     float64 [value if unsaturated else 0, variance if unsaturated else 0 (too dark: at least the
     variance of the dark range, ``dark_val^2 / 3``), 1 if saturated, 1 if too dark].
@@ -371,7 +371,7 @@ def _place_held(held, amount, bounded, satnow, out, width, reach):  # type: igno
     """Put what :func:`_hold_moving` kept back into the map: shared among the pixels nearby that
     the frame sees saturated and no exposure measures (where the lamp went), else in place.
     Returns where it went: the pixels and the amounts added (a lamp the tracker draws takes its
-    held energy back, :mod:`device.hdr.tracking`)."""
+    held energy back, :mod:`lightprobe.device.hdr.tracking`)."""
     npx = out.shape[0]
     rows = npx // width
     src = np.flatnonzero(held)
@@ -541,7 +541,7 @@ class RollingMerge:
                mean_gain: np.ndarray, codes: np.ndarray, lut: np.ndarray,
                bounds: tuple[np.ndarray, np.ndarray], sharing: np.ndarray | None = None) -> np.ndarray:
         """Fuse, project and merge one frame (arguments as :func:`frame_to_map`; ``sharing``: the
-        table's :func:`device.projection.sample_sharing`, for the lamp tracker) into its slot;
+        table's :func:`lightprobe.device.projection.sample_sharing`, for the lamp tracker) into its slot;
         returns the fused map (pixels, 3) float32 (a buffer of the merge's that a later update
         overwrites: copy what must outlive the frame)."""
         s = self._slot(key, frame)

@@ -2,7 +2,7 @@
 
 A long exposure sees a bright lamp only saturated: where the lamp is now, it gives a lower bound
 far below the lamp, and where the lamp was, its halo often still saturates, so the rolling merge
-cannot tell that those pixels went dark (:mod:`device.hdr.rolling`). Measured on the simulator's
+cannot tell that those pixels went dark (:mod:`lightprobe.device.hdr.rolling`). Measured on the simulator's
 flashlight (a 3-degree, 600:1 lamp at 40 degrees a second, one short exposure every other frame),
 such frames published the lamp smeared over where the last short exposure saw it and where it is,
 and the glossy error of those frames was 3-12% against 0.5-2.5% on the frames that measure it.
@@ -18,8 +18,8 @@ measures keep their measured value. A static lamp (moved less than ``min_shift``
 since it was measured) is left to the merge, which holds it exactly; a lamp switched off leaves no
 saturated footprint and is not drawn; a lamp switched on has no track yet.
 
-The merge's own answer to a moving lamp (:func:`device.hdr.rolling._hold_moving` keeps back what
-the pixels it left lost, :func:`device.hdr.rolling._place_held` puts that into the saturated
+The merge's own answer to a moving lamp (:func:`lightprobe.device.hdr.rolling._hold_moving` keeps back what
+the pixels it left lost, :func:`lightprobe.device.hdr.rolling._place_held` puts that into the saturated
 pixels nearby) is the fallback for lamps with no track. Where the tracker draws a lamp, whatever
 the hold placed within ``move_reach`` of the lamp's old and new boxes is taken back first: the
 image carries the lamp's whole energy, and the two together counted the moved part twice (on the
@@ -60,7 +60,7 @@ import cv2
 import numba
 import numpy as np
 
-from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle, luminance
+from lightprobe.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle, luminance
 
 __all__ = ["LampTracker"]
 
@@ -295,7 +295,7 @@ class LampTracker:
         (pixels, 3): 1 / the variance of each fused value (the merge's sums); with it, a measured
         lamp's energy is filtered over its consistent measurements (:meth:`_filter`);
         ``sharing`` (pixels,): how much more a region's sum varies than its pixels' variances
-        summed (:func:`device.projection.sample_sharing`; None: 1). Returns the lamps drawn."""
+        summed (:func:`lightprobe.device.projection.sample_sharing`; None: 1). Returns the lamps drawn."""
         rows = fused.shape[0] // self.width
         f = fused.reshape(rows, self.width, 3)
         sat = satnow.reshape(rows, self.width)

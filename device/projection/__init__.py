@@ -1,6 +1,6 @@
 """Fisheye radiance image -> hemisphere polar map, full equirect map and NESTED HEALPix map.
 
-Tables are built once from a :class:`device.core.calibration.Calibration`; a frame is then one sparse
+Tables are built once from a :class:`lightprobe.core.calibration.Calibration`; a frame is then one sparse
 matrix-vector product per map (float32, three channels, numba CSR kernel).
 
 Conservative (area-correct) remapping
@@ -8,7 +8,7 @@ Conservative (area-correct) remapping
 Every valid fisheye pixel ``i`` (camera polar angle of its centre <= ``fov_deg / 2 -
 ring_margin_deg``, and inside the calibration's clean-circle ``mask`` when present) is split into
 ``s x s`` subpixels (``subdiv``, 4). The subpixel corners are unprojected through the KB4 model
-(``FisheyeModel``) and rotated to the probe frame with ``device.core.sphere.CAMERA_TO_PROBE``; a
+(``FisheyeModel``) and rotated to the probe frame with ``lightprobe.core.sphere.CAMERA_TO_PROBE``; a
 subpixel's solid angle is that of its spherical quadrilateral (two triangles, Van Oosterom &
 Strackee 1983, eq. (VOS)). It is binned into output pixels with a 5-point rule (1/2 at its centre,
 1/8 at each corner; the corners make thin slivers of overlap get an entry)::

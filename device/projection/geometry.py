@@ -15,10 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.core.calibration import FisheyeModel
-from device.core.errors import InputError
-from device.core.healpix import face_xy_to_directions, nest_to_xyf, npix, vec2pix_nest
-from device.core.sphere import CAMERA_TO_PROBE, angles_from_directions, equirect_row_solid_angle
+from lightprobe.core.calibration import FisheyeModel
+from lightprobe.core.errors import InputError
+from lightprobe.core.healpix import face_xy_to_directions, nest_to_xyf, npix, vec2pix_nest
+from lightprobe.core.sphere import CAMERA_TO_PROBE, angles_from_directions, equirect_row_solid_angle
 
 __all__ = [
     "fisheye_pixel_directions",

@@ -1,5 +1,5 @@
 """Per-frame kernels: the projection's repair of rows fed by bad pixels (numba); the CSR x RGB
-product itself is :func:`device.core.sparse.spmv_rgb`.
+product itself is :func:`lightprobe.device.projection.sparse.spmv_rgb`.
 
 Single-threaded on purpose: on the shared 2-core box numba's ``parallel=True`` pool was 10x
 slower than one thread under load (threads wait for a time slice); the three maps together are
@@ -16,7 +16,7 @@ import numpy as np
 # Per-frame kernels
 # ------------------------------------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
-def _spmv_rgb_fix(indptr, indices, data, inv_gain, geo_sum, col_ptr, col_rows, x, valid, bad,
+def spmv_rgb_fix(indptr, indices, data, inv_gain, geo_sum, col_ptr, col_rows, x, valid, bad,
                   out):  # pragma: no cover - compiled
     """Recompute eq. (P) for the rows fed by the ``bad`` pixels, over valid, finite inputs only.
 

@@ -12,13 +12,13 @@ from typing import Literal
 
 import numpy as np
 
-from device.core.calibration import Calibration
-from device.core.errors import InputError
-from device.core.healpix import npix
-from device.core.sparse import spmv_rgb
+from lightprobe.core.calibration import Calibration
+from lightprobe.core.errors import InputError
+from lightprobe.core.healpix import npix
+from lightprobe.device.projection.sparse import spmv_rgb
 
-from .kernels import _spmv_rgb_fix
-from .tables import _TABLE_CACHE, _TABLE_CACHE_SIZE, _TABLE_KEEP, _build_all
+from .kernels import spmv_rgb_fix
+from .tables import TABLE_CACHE, TABLE_CACHE_SIZE, TABLE_KEEP, build_all
 
 __all__ = ["LOWER_POLICIES", "LowerPolicy", "ProbeMaps", "Projector"]
 
@@ -81,7 +81,7 @@ class Projector:
     cache : reuse tables built earlier in this process for the same calibration id and
         geometry parameters (the last four are kept; they are read-only and shared).
     cache_dir : also keep the tables on disk there (the service uses its state directory), so a
-        restart loads them instead of rebuilding (``device.projection.diskcache``).
+        restart loads them instead of rebuilding (``lightprobe.device.projection.diskcache``).
     maps : the tables to build (a subset of polar, equirect, healpix; the live pipeline needs
         only the equirect one, a third of the build).
     balance : False builds a coarse table, without the exact solid-angle balancing (a plain
@@ -128,7 +128,7 @@ class Projector:
         key = (self.calibration.id, self.polar_height, self.equirect_height, self.nside,
                self.ring_margin_deg, self.subdiv, *((self.maps,) if self.maps != ("polar", "equirect", "healpix") else ()),
                *(() if self.balanced else ("coarse",)))
-        built = _TABLE_CACHE.get(key) if cache else None
+        built = TABLE_CACHE.get(key) if cache else None
         path = cache_path(cache_dir, key) if cache_dir is not None and self.balanced else None
         if built is None and path is not None:
             built = load_built(path)
@@ -136,7 +136,7 @@ class Projector:
             raise LookupError("projection tables not built yet")
         self.built_now = built is None  # built in this call (not from the memo or the disk cache)
         if built is None:
-            built = _build_all(self.calibration, self.polar_height, self.equirect_height,
+            built = build_all(self.calibration, self.polar_height, self.equirect_height,
                                self.nside, self.ring_margin_deg, self.subdiv, self.maps, self.balanced)
             if path is not None:
                 try:
@@ -146,10 +146,10 @@ class Projector:
                 else:  # serve from the mapped file (clean pages, see diskcache), not the build's arrays
                     built = load_built(path) or built
         if cache:
-            _TABLE_CACHE[key] = built
-            if not any(b is built for b in _TABLE_KEEP):  # (identity: a dataclass of arrays)
-                _TABLE_KEEP.append(built)
-            del _TABLE_KEEP[:-_TABLE_CACHE_SIZE]
+            TABLE_CACHE[key] = built
+            if not any(b is built for b in TABLE_KEEP):  # (identity: a dataclass of arrays)
+                TABLE_KEEP.append(built)
+            del TABLE_KEEP[:-TABLE_CACHE_SIZE]
         self._built = built  # keeps the memo's (weak) entry while this projector lives
         self.lens_mask = built.lens_mask
         self.pixel_gain = built.pixel_gain
@@ -208,7 +208,7 @@ class Projector:
             if nonfinite.any():
                 frame.set_bad(np.flatnonzero(nonfinite))
         if frame.bad is not None:
-            _spmv_rgb_fix(t.indptr, t.indices, t.data, self._inv_gain, t.geo_sum, t.col_ptr,
+            spmv_rgb_fix(t.indptr, t.indices, t.data, self._inv_gain, t.geo_sum, t.col_ptr,
                           t.col_rows, frame.x, frame.valid, frame.bad, out)
         if not finite:  # float32 overflow of finite inputs (values near 3e38)
             np.nan_to_num(out, copy=False, nan=0.0, posinf=3.0e38, neginf=-3.0e38)
@@ -289,7 +289,7 @@ class Projector:
     def table(self, name: str) -> object:
         """The CSR table of map ``name`` (``indptr``, ``indices``, ``data`` = geometric weight x
         pixel gain; read-only), for kernels that fuse while they project
-        (:func:`device.hdr.rolling.frame_to_map`)."""
+        (:func:`lightprobe.device.hdr.rolling.frame_to_map`)."""
         return self._tables[name]
 
     @property

@@ -19,9 +19,9 @@ from typing import Any
 import numba
 import numpy as np
 
-from device.core.calibration import Calibration, FisheyeModel
-from device.core.sparse import Csr
-from device.core.sphere import CAMERA_TO_PROBE
+from lightprobe.core.calibration import Calibration, FisheyeModel
+from lightprobe.core.sphere import CAMERA_TO_PROBE
+from lightprobe.device.projection.sparse import Csr
 
 from .geometry import (
     _Chunk,
@@ -355,14 +355,14 @@ class _Built:
 
 # Tables built per (calibration id, geometry parameters); a pure memo so that a service restart or a
 # second projector on the same calibration does not rebuild them. Weak: an entry lives while a
-# projector uses it or while it is among the _TABLE_CACHE_SIZE most recent (_TABLE_KEEP), so the
+# projector uses it or while it is among the TABLE_CACHE_SIZE most recent (TABLE_KEEP), so the
 # staged start's coarse table goes once the balanced one replaces it (~15 MB on the board).
-_TABLE_CACHE: weakref.WeakValueDictionary[tuple[object, ...], _Built] = weakref.WeakValueDictionary()
-_TABLE_KEEP: list[_Built] = []
-_TABLE_CACHE_SIZE = 1
+TABLE_CACHE: weakref.WeakValueDictionary[tuple[object, ...], _Built] = weakref.WeakValueDictionary()
+TABLE_KEEP: list[_Built] = []
+TABLE_CACHE_SIZE = 1
 
 
-def _build_all(cal: Calibration, polar_height: int, equirect_height: int, nside: int,
+def build_all(cal: Calibration, polar_height: int, equirect_height: int, nside: int,
                ring_margin_deg: float, subdiv: int,
                maps: tuple[str, ...] = ("polar", "equirect", "healpix"), balance: bool = True) -> _Built:
     """Build the tables of ``maps`` (eq. O, gather fallback, balancing, eq. P) from one

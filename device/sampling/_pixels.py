@@ -2,7 +2,7 @@
 
 NaN, +-Inf and negative values (a driver's bad pixel, a lossy EXR's ringing) count as zero
 radiance and are counted: ``bad[0]`` non-finite, ``bad[1]`` negative (the same policy as
-``device.sampling.base.sanitize_radiance``, inside the kernels so no cleaned copy is made).
+``lightprobe.device.sampling.base.sanitize_radiance``, inside the kernels so no cleaned copy is made).
 Kernels keep the cheap test ``vr >= 0 and vg >= 0 and vb >= 0 and vr + vg + vb < inf`` in their
 own loop (a helper returning a tuple there halved Pharr's speed) and call
 :func:`clean_invalid` only for the rare pixel that fails it.

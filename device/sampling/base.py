@@ -1,6 +1,6 @@
 """Common types of the samplers: the protocol and the map every sampler integrates.
 
-The light set type itself is :class:`device.core.lightset.LightSet` (the base layer).
+The light set type itself is :class:`lightprobe.core.lightset.LightSet` (the base layer).
 
 Energy convention: a light's ``rgb`` is the integral of radiance x solid angle over the region it
 stands for (unit x sr); over a light set ``sum(rgb)`` equals the integral of the map over the
@@ -14,7 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
-from device.core.lightset import LightSet
+from lightprobe.core.lightset import LightSet
 
 __all__ = ["Sampler", "sanitize_radiance"]
 

@@ -3,11 +3,11 @@
 Per hemisphere (upper = rows whose centre is at or above the horizon, lower = the rest):
 
 1. Resample the map into an ``grid x grid`` unit square through the equal-area Havran mapping
-   (:mod:`device.sampling.havran`): every equirect pixel (split into ``s x s`` sub-pixels when the
+   (:mod:`lightprobe.device.sampling.havran`): every equirect pixel (split into ``s x s`` sub-pixels when the
    map is coarser than the grid) adds its radiance x exact solid angle to the cell its centre maps
    to. Cells are equal-area (2 pi / grid^2 sr), so this is area-correct and conserves energy.
 2. A bicontinuous 2D distribution on the cells' luminance (conditional CDFs interpolated between
-   rows, :class:`~device.sampling.distribution.Distribution2D` ``interpolate=True``).
+   rows, :class:`~lightprobe.device.sampling.distribution.Distribution2D` ``interpolate=True``).
 3. Light ``i`` of a hemisphere is Halton (2, 3) index ``i + 1`` pushed through the inverse CDFs,
    every frame, so a small change of the map moves it a little; ``id = i`` (upper) or
    ``LOWER_ID_OFFSET + i`` (lower). **Stratum averaging** (ours, not in the paper): light ``i``
@@ -61,8 +61,8 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from device.core.lightset import LightSet
-from device.core.sphere import LUMINANCE_WEIGHTS, equirect_row_solid_angle, luminance
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS, equirect_row_solid_angle, luminance
 
 from ._pixels import clean_invalid
 from .distribution import ONE_MINUS_EPSILON, Distribution2D, halton, sample_one

@@ -29,8 +29,8 @@ import heapq
 import numpy as np
 from numba import njit
 
-from device.core.lightset import LightSet
-from device.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import LUM_B, LUM_G, LUM_R, equirect_row_solid_angle
 
 from ._pixels import clean_invalid
 from .pharr import empty_lightset
@@ -70,7 +70,7 @@ def _best_split(sat, r0, r1, c0, c1, along_cols):  # type: ignore[no-untyped-def
 def _prepare_sat(img, omega):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
     """One pass over the map: summed-area table (H + 1, W + 1) of luminance x solid angle
     (Crow 1984), the per-channel integral and the invalid-value counts (read as 0, the rule of
-    ``device.sampling._pixels``)."""
+    ``lightprobe.device.sampling._pixels``)."""
     h, w = img.shape[0], img.shape[1]
     sat = np.empty((h + 1, w + 1))
     sat[0, :] = 0.0

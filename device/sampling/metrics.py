@@ -19,7 +19,7 @@ is identically 0 (all-black map) the error is the lights' absolute RMS, so an em
 zero-power light set scores 0 and any stray energy scores above 0 (never NaN).
 
 A light set's ``extra["ambient"]`` (rgb, unit x sr, spread uniformly over the sphere; see
-:mod:`device.sampling.hemigon`) is included as 1024 equal virtual lights on a Fibonacci sphere.
+:mod:`lightprobe.device.sampling.hemigon`) is included as 1024 equal virtual lights on a Fibonacci sphere.
 
 Dtype policy: directions, weights and accumulators float64; the map is read as float32 and
 accumulated in float64, in chunks of pixels so memory stays ~64 MB whatever the map size.
@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from device.core.lightset import LightSet
-from device.core.sphere import equirect_directions, equirect_row_solid_angle, luminance
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import equirect_directions, equirect_row_solid_angle, luminance
 
 from .base import sanitize_radiance
 

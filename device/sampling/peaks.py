@@ -29,17 +29,21 @@ from typing import Any
 
 import numpy as np
 
-from device.core.components import DEFAULT_CONTRAST, DEFAULT_RELATIVE, peak_threshold
-from device.core.components import sphere_labels as _sphere_labels
-from device.core.errors import InputError
-from device.core.lightset import LightSet
-from device.core.sphere import (
+from lightprobe.core.errors import InputError
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import (
     coarse_equirect,
     directions_from_angles,
     equirect_row_solid_angle,
     lit_rows,
     luminance,
 )
+from lightprobe.device.formats.bright_regions import (
+    DEFAULT_CONTRAST,
+    DEFAULT_RELATIVE,
+    peak_threshold,
+)
+from lightprobe.device.formats.bright_regions import sphere_labels as _sphere_labels
 
 from .base import sanitize_radiance
 
@@ -76,7 +80,7 @@ def find_peaks(equirect: np.ndarray, *, threshold: float | None = None,
     Parameters
     ----------
     threshold : luminance (radiance unit) a pixel must exceed; ``None`` -> :func:`peak_threshold`,
-        its mean taken over the rows that hold light (:func:`device.core.sphere.lit_rows`: a
+        its mean taken over the rows that hold light (:func:`lightprobe.core.sphere.lit_rows`: a
         probe's hemisphere map, lower half black, is not a sphere with a black half, whose halved
         mean made its bright sky peaks).
     relative, contrast : parameters of the automatic threshold.
@@ -133,7 +137,7 @@ def choose_light_count(equirect: np.ndarray, max_count: int, error_target: float
     If the peaks carry at least ``peak_energy`` of the map's luminance integral, the counts
     ``min_count * 2^j`` (never fewer than the number of peaks) below ``max_count`` are tried in
     increasing order and the first whose light set meets ``error_target`` (``kind`` error of
-    :mod:`device.sampling.metrics`, evaluated exactly against a 64 x 128 energy-preserving
+    :mod:`lightprobe.device.sampling.metrics`, evaluated exactly against a 64 x 128 energy-preserving
     reduction of the map) is returned. Otherwise, or if none meets it, ``max_count``.
     ``sample(count)`` builds the light set to judge with the caller's sampler (the Q2-Tree passes
     a fresh build of its own tree).

@@ -1,7 +1,7 @@
 """Pharr sampler: pbrt-v3 ``InfiniteAreaLight`` importance sampling of an equirect map.
 
 The PDF over the map is proportional to luminance x solid angle per pixel (marginal over rows,
-conditional within a row, :class:`~device.sampling.distribution.Distribution2D` piecewise
+conditional within a row, :class:`~lightprobe.device.sampling.distribution.Distribution2D` piecewise
 constant); a fixed Halton (2, 3) sequence is pushed through the inverse CDFs, so the result is
 deterministic and light ``i`` always comes from Halton index ``i + 1`` (``ids = i``).
 
@@ -30,8 +30,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from device.core.lightset import LightSet
-from device.core.sphere import (
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.sphere import (
     LUM_B,
     LUM_G,
     LUM_R,
@@ -89,7 +89,7 @@ def prepare_density(img: np.ndarray
     ``func`` (H, W) float64 = luminance x exact pixel solid angle, ``row_cdf`` (H, W + 1) its
     unnormalised row prefix sums divided by W (what ``Distribution2D`` needs), ``total`` (3,) float64 = the
     map integral, ``flags`` = counts of non-finite and negative values, all of which are read as 0
-    (the same policy as :func:`device.sampling.base.sanitize_radiance`, without copying the map).
+    (the same policy as :func:`lightprobe.device.sampling.base.sanitize_radiance`, without copying the map).
     """
     img = np.asarray(img)
     if img.ndim != 3 or img.shape[2] != 3:

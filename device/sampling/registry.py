@@ -6,28 +6,50 @@ construction (``q2tree``) cannot break the others.
 
 from __future__ import annotations
 
-import importlib
+from collections.abc import Callable
 from typing import Any
 
 from .base import Sampler
 
 __all__ = ["SAMPLERS", "available_samplers", "make_sampler"]
 
-# CLI name -> (module, class name)
-SAMPLERS: dict[str, tuple[str, str]] = {
-    "pharr": ("device.sampling.pharr", "PharrSampler"),
-    "hemigon": ("device.sampling.hemigon", "HemigonSampler"),
-    "median-cut": ("device.sampling.median_cut", "MedianCutSampler"),
-    "q2tree": ("device.sampling.q2tree", "Q2TreeSampler"),
+def _pharr() -> type:
+    from .pharr import PharrSampler
+
+    return PharrSampler
+
+
+def _hemigon() -> type:
+    from .hemigon import HemigonSampler
+
+    return HemigonSampler
+
+
+def _median_cut() -> type:
+    from .median_cut import MedianCutSampler
+
+    return MedianCutSampler
+
+
+def _q2tree() -> type:
+    from .q2tree import Q2TreeSampler
+
+    return Q2TreeSampler
+
+
+# CLI name -> the sampler's class, imported when first asked for
+SAMPLERS: dict[str, Callable[[], type]] = {
+    "pharr": _pharr,
+    "hemigon": _hemigon,
+    "median-cut": _median_cut,
+    "q2tree": _q2tree,
 }
 
 
 def _load(name: str) -> type:
     if name not in SAMPLERS:
         raise KeyError(f"unknown sampler {name!r} (known: {', '.join(sorted(SAMPLERS))})")
-    module_name, cls_name = SAMPLERS[name]
-    module = importlib.import_module(module_name)
-    return getattr(module, cls_name)  # type: ignore[no-any-return]
+    return SAMPLERS[name]()
 
 
 def available_samplers() -> list[str]:

@@ -24,13 +24,13 @@ from typing import Any
 
 from aiohttp import web
 
-from device.service.auth import check_bearer
-from device.service.config import ServiceConfig
-from device.service.errors import ApiError, Handler, error_middleware
-from device.service.notify import Notifier
-from device.service.runner import PipelineLike, Runner
-from device.service.state import HOST, MQTT, PORT, STATE, VIEW_MESH, ServiceState
-from device.service.viewmesh import load_view_mesh
+from lightprobe.device.service.auth import check_bearer
+from lightprobe.device.service.config import ServiceConfig
+from lightprobe.device.service.errors import ApiError, Handler, error_middleware
+from lightprobe.device.service.notify import Notifier
+from lightprobe.device.service.runner import PipelineLike, Runner
+from lightprobe.device.service.state import HOST, MQTT, PORT, STATE, VIEW_MESH, ServiceState
+from lightprobe.device.service.viewmesh import load_view_mesh
 
 __all__ = ["create_app"]
 
@@ -192,7 +192,7 @@ def _warm_imports() -> None:
     on the import lock) for it later."""
     import cv2  # noqa: F401
 
-    import device.core.imageio  # noqa: F401
+    import lightprobe.core.imageio  # noqa: F401
 
 
 async def _warm_after_first_frame(st: ServiceState) -> None:
@@ -272,7 +272,7 @@ async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
     if not cfg.get("mdns", "enabled"):
         yield
         return
-    from device.service.mdns import Advertiser, MdnsInfo
+    from lightprobe.device.service.mdns import Advertiser, MdnsInfo
 
     info = MdnsInfo(probe_id=st.probe_id, name=cfg.get("probe", "name"), port=app[PORT],
                     version=st.version, model=cfg.get("probe", "model"),
@@ -299,7 +299,7 @@ async def _mqtt_ctx(app: web.Application) -> AsyncIterator[None]:
     if settings is None:
         yield
         return
-    from device.service.mqtt import MqttPublisher, ServiceSource
+    from lightprobe.device.service.mqtt import MqttPublisher, ServiceSource
 
     host = app[HOST]
     shown = "127.0.0.1" if host in ("0.0.0.0", "") else ("::1" if host == "::" else host)
@@ -382,9 +382,9 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
     ``host`` are where the API listens (defaults from ``[service]``), for mDNS. ``mqtt`` is a
-    :class:`device.service.mqtt.MqttSettings` to publish to a broker (``None``: off); ``view_mesh``
+    :class:`lightprobe.device.service.mqtt.MqttSettings` to publish to a broker (``None``: off); ``view_mesh``
     an OBJ file for ``/view`` (``None``: ``[view] mesh``)."""
-    from device.service.routes import calibration, environment, probe, q2tree
+    from lightprobe.device.service.routes import calibration, environment, probe, q2tree
 
     app = web.Application(
         client_max_size=int(config.get("service", "client_max_size")),

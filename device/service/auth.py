@@ -2,7 +2,7 @@
 
 Write endpoints always need ``Authorization: Bearer <token>``; so do camera images and maps of
 the room unless ``service.public_images`` opens them; other reads need it only when
-``service.require_token_for_reads`` is set (``device.service.app.needs_token``). Comparison is
+``service.require_token_for_reads`` is set (``lightprobe.device.service.app.needs_token``). Comparison is
 constant-time.
 """
 

@@ -15,7 +15,7 @@ The file has six tables (every key optional; missing keys take the defaults belo
 Reading uses :mod:`tomllib`; writing is our own small serialiser for flat tables of strings,
 numbers, booleans and lists of strings, done atomically (temp file in the same folder, fsync,
 rename, fsync of the folder) so a crash at any instant leaves the old or the new file, never a torn
-one. Validation raises :class:`device.core.errors.InputError` naming the ``table.key`` at fault.
+one. Validation raises :class:`lightprobe.core.errors.InputError` naming the ``table.key`` at fault.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from device.core.errors import InputError
-from device.core.fsutil import atomic_write
-from device.sampling.registry import SAMPLERS as REGISTRY
+from lightprobe.core.errors import InputError
+from lightprobe.core.fsutil import atomic_write
+from lightprobe.device.sampling.registry import SAMPLERS as REGISTRY
 
 __all__ = [
     "SAMPLERS",
@@ -51,7 +51,7 @@ _Spec = tuple[type, Any, str, Any]
 _NAME_RE = re.compile(r"^[^\x00-\x1f\x7f.][^\x00-\x1f\x7f]{0,62}$")
 
 
-class _in:  # lower case: it reads as a predicate in SCHEMA
+class in_range:  # lower case: it reads as a predicate in SCHEMA
     """``lo <= v <= hi``, with its bounds readable (the OpenAPI schema is generated from them)."""
 
     def __init__(self, lo: float, hi: float) -> None:
@@ -79,31 +79,31 @@ def _is_host(v: str) -> bool:
 SCHEMA: dict[str, dict[str, _Spec]] = {
     "service": {
         "host": (str, "127.0.0.1", "an IP address or a host name", _is_host),
-        "port": (int, 8080, "an integer in [0, 65535]", _in(0, 65535)),
+        "port": (int, 8080, "an integer in [0, 65535]", in_range(0, 65535)),
         "require_token_for_reads": (bool, False, "true or false", None),
         "public_images": (bool, False, "true or false (camera images and maps readable without the token)", None),
         "allowed_hosts": (list, [], "a list of host names the probe answers to besides its own",
                           lambda v: len(v) <= 32 and all(isinstance(s, str) and _is_host(s) for s in v)),
         "cors_origins": (list, [], "a list of origin strings (empty = CORS off)",
                          lambda v: all(isinstance(s, str) and len(s) < 256 for s in v) and len(v) <= 32),
-        "client_max_size": (int, 64 * 1024, "an integer in [1024, 16777216] bytes", _in(1024, 1 << 24)),
-        "ws_send_timeout": (float, 5.0, "seconds in [0.1, 60]", _in(0.1, 60.0)),
-        "max_connections": (int, 512, "an integer in [16, 65536] (capped below the fd limit)", _in(16, 65536)),
-        "max_connections_per_peer": (int, 64, "an integer in [1, 65536]", _in(1, 65536)),
-        "header_timeout": (float, 10.0, "seconds in [0.5, 300]", _in(0.5, 300.0)),
-        "body_timeout": (float, 30.0, "seconds in [0.5, 600]", _in(0.5, 600.0)),
-        "keepalive_timeout": (float, 15.0, "seconds in [1, 3600]", _in(1.0, 3600.0)),
+        "client_max_size": (int, 64 * 1024, "an integer in [1024, 16777216] bytes", in_range(1024, 1 << 24)),
+        "ws_send_timeout": (float, 5.0, "seconds in [0.1, 60]", in_range(0.1, 60.0)),
+        "max_connections": (int, 512, "an integer in [16, 65536] (capped below the fd limit)", in_range(16, 65536)),
+        "max_connections_per_peer": (int, 64, "an integer in [1, 65536]", in_range(1, 65536)),
+        "header_timeout": (float, 10.0, "seconds in [0.5, 300]", in_range(0.5, 300.0)),
+        "body_timeout": (float, 30.0, "seconds in [0.5, 600]", in_range(0.5, 600.0)),
+        "keepalive_timeout": (float, 15.0, "seconds in [1, 3600]", in_range(1.0, 3600.0)),
     },
     "pipeline": {
         "fps": (float, 30.0, "light sets per second at most, in [0.1, 60] (the camera paces below it)",
-                _in(0.1, 60.0)),
+                in_range(0.1, 60.0)),
         "sampler": (str, "q2tree", "one of " + ", ".join(SAMPLERS), lambda v: v in SAMPLERS),
-        "light_count": (int, 256, "an integer in [1, 4096]", _in(1, 4096)),
-        "max_exposures": (int, 8, "an integer in [1, 16]", _in(1, 16)),
+        "light_count": (int, 256, "an integer in [1, 4096]", in_range(1, 4096)),
+        "max_exposures": (int, 8, "an integer in [1, 16]", in_range(1, 16)),
         # map sizes a small board holds (tables, rolling estimate, samplers), measured on the
         # simulator 2026-12-02: 256 / 64 -> ~310 MB RSS (peak ~380); 512 / 128 -> ~480 MB (peak
         # ~810 while the table is built); 1024 / 256 -> ~880 MB (peak 2.4 GB): refused
-        "equirect_height": (int, 256, "an integer in [16, 512]", _in(16, 512)),
+        "equirect_height": (int, 256, "an integer in [16, 512]", in_range(16, 512)),
         "nside": (int, 64, "a power of two in [1, 128]", lambda v: 1 <= v <= 128 and v & (v - 1) == 0),
     },
     "probe": {
@@ -119,7 +119,7 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "interfaces": (list, [], "a list of interface addresses (empty = all)",
                        lambda v: all(isinstance(s, str) and 0 < len(s) < 64 for s in v) and len(v) <= 16),
     },
-    # publication to an MQTT broker (device.service.mqtt); off while url is empty
+    # publication to an MQTT broker (lightprobe.device.service.mqtt); off while url is empty
     "mqtt": {
         "url": (str, "", "mqtt://[USER@]HOST[:PORT] or mqtts://... (empty = off; no password in it)",
                 lambda v: v == "" or _is_broker(v)),
@@ -129,12 +129,12 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "tls": (bool, False, "true or false (mqtts:// implies true)", None),
         "ca_file": (str, "", "a CA bundle for TLS (empty = the system's)", lambda v: len(v) <= 4096 and v.isprintable()),
         "keepalive": (int, 10, "seconds in [2, 3600] (the broker declares a silent probe offline "
-                               "after 1.5 x this)", _in(2, 3600)),
+                               "after 1.5 x this)", in_range(2, 3600)),
         "topic_prefix": (str, "lightprobe", "topic levels of [A-Za-z0-9_-] separated by '/'", lambda v: _is_prefix(v)),
-        "lights_rate": (float, 10.0, "light sets per second at most, in [0.1, 60]", _in(0.1, 60.0)),
-        "sh_rate": (float, 1.0, "SH bodies per second at most, in [0, 30] (0 = off)", _in(0.0, 30.0)),
-        "sensors_rate": (float, 1.0, "sensor updates per second, in [0.02, 10]", _in(0.02, 10.0)),
-        "status_interval": (float, 30.0, "seconds between status refreshes, in [1, 3600]", _in(1.0, 3600.0)),
+        "lights_rate": (float, 10.0, "light sets per second at most, in [0.1, 60]", in_range(0.1, 60.0)),
+        "sh_rate": (float, 1.0, "SH bodies per second at most, in [0, 30] (0 = off)", in_range(0.0, 30.0)),
+        "sensors_rate": (float, 1.0, "sensor updates per second, in [0.02, 10]", in_range(0.02, 10.0)),
+        "status_interval": (float, 30.0, "seconds between status refreshes, in [1, 3600]", in_range(1.0, 3600.0)),
         "discovery": (bool, True, "true or false (Home Assistant MQTT discovery configs)", None),
         "discovery_prefix": (str, "homeassistant", "topic levels of [A-Za-z0-9_-] separated by '/'",
                              lambda v: _is_prefix(v)),
@@ -147,7 +147,7 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
 
 
 def _is_broker(v: str) -> bool:
-    from device.core.broker import parse_broker_url
+    from lightprobe.core.mqtt_topics import parse_broker_url
 
     try:
         parse_broker_url(v, "mqtt.url")
@@ -157,7 +157,7 @@ def _is_broker(v: str) -> bool:
 
 
 def _is_prefix(v: str) -> bool:
-    from device.core.broker import check_prefix
+    from lightprobe.core.mqtt_topics import check_prefix
 
     try:
         check_prefix(v)
@@ -318,7 +318,7 @@ def dump_toml(data: dict[str, dict[str, Any]]) -> str:
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically (``device.core.fsutil.atomic_write``)."""
+    """Write ``text`` (UTF-8) to ``path`` atomically (``lightprobe.core.fsutil.atomic_write``)."""
     atomic_write(path, text.encode("utf-8"))
 
 

@@ -1,7 +1,7 @@
 """One middleware that maps every error to a JSON body: ``{"error": message, "param": name|null,
 "status": code}``.
 
-- :class:`device.core.errors.InputError` -> 400 (its ``param`` names the field at fault);
+- :class:`lightprobe.core.errors.InputError` -> 400 (its ``param`` names the field at fault);
 - aiohttp's HTTP exceptions (404 unknown path, 405, 413 oversized body, ...) keep their status and
   get a JSON body instead of text;
 - camera errors -> 503 (the probe has no current data);
@@ -17,7 +17,7 @@ from typing import Any
 
 from aiohttp import web
 
-from device.core.errors import InputError
+from lightprobe.core.errors import InputError
 
 __all__ = ["ApiError", "error_middleware", "json_error"]
 
@@ -44,7 +44,7 @@ def json_error(status: int, message: str, param: str | None = None,
 
 @web.middleware
 async def error_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
-    from drivers.base import CameraError
+    from lightprobe.drivers.base import CameraError
 
     try:
         return await handler(request)

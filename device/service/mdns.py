@@ -24,6 +24,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lightprobe.core import mdns_txt
+from lightprobe.core.mdns_txt import HTTP_TYPE, SERVICE_TYPE
+
 if TYPE_CHECKING:
     from zeroconf import ServiceInfo
     from zeroconf.asyncio import AsyncZeroconf
@@ -32,8 +35,6 @@ __all__ = ["HTTP_TYPE", "SERVICE_TYPE", "Advertiser", "MdnsInfo", "camera_identi
 
 log = logging.getLogger(__name__)
 
-SERVICE_TYPE = "_lightprobe._tcp.local."
-HTTP_TYPE = "_http._tcp.local."
 
 
 def stable_probe_id(machine_id_path: str | Path = "/etc/machine-id", identity: str = "") -> str:
@@ -82,9 +83,9 @@ class MdnsInfo:
 
 
 def txt_records(info: MdnsInfo) -> dict[str, str]:
-    """TXT key/values in order, ``txtvers`` first (dicts keep insertion order)."""
-    return {"txtvers": "1", "id": info.probe_id, "path": info.path, "version": info.version,
-            "model": info.model[:40], "name": info.name[:63], "sampler": info.sampler}
+    """TXT key/values in order, ``txtvers`` first (:mod:`lightprobe.core.mdns_txt`)."""
+    return mdns_txt.txt_records(probe_id=info.probe_id, name=info.name, path=info.path, version=info.version,
+                                model=info.model, sampler=info.sampler)
 
 
 def current_addresses(interfaces: list[str]) -> list[str]:

@@ -2,7 +2,7 @@
 
 A building's probes reach hosts through a broker when one LAN and mDNS no longer do: each probe
 keeps one connection to the broker (aiomqtt over paho) and publishes what hosts read over HTTP
-(topics and payloads: :mod:`device.core.broker`), each topic rate-limited (newest wins: a
+(topics and payloads: :mod:`lightprobe.core.mqtt_topics`), each topic rate-limited (newest wins: a
 frame that arrives inside a topic's interval is replaced by the next, nothing queues):
 
 * ``status`` (retained, QoS 1) on connect, on a health change and every ``status_interval``;
@@ -27,211 +27,34 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
-import os
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol
 
-import numpy as np
-
-from device.core.broker import (
-    DEFAULT_PREFIX,
-    PASSWORD_ENV,
-    BrokerAddress,
-    check_prefix,
+from lightprobe.core.mqtt_topics import (
     offline_payload,
-    parse_broker_url,
     topic,
 )
-from device.core.errors import InputError
+from lightprobe.device.sensors import horizontal_illuminance, sensor_body
+from lightprobe.device.service.home_assistant import ha_discovery
+from lightprobe.device.service.mqtt_settings import MqttSettings
 
-__all__ = ["MqttPublisher", "MqttSettings", "cct_mccamy", "ha_discovery", "horizontal_illuminance",
-           "primary_angles"]
+__all__ = ["MqttPublisher",]
 
 log = logging.getLogger(__name__)
-
-
-# linear Rec. 709 / sRGB primaries, D65 white -> CIE XYZ
-_RGB_TO_XYZ = np.array([[0.4124564, 0.3575761, 0.1804375],
-                        [0.2126729, 0.7151522, 0.0721750],
-                        [0.0193339, 0.1191920, 0.9503041]])
-
-
-def _planck_xy(t: float) -> tuple[float, float]:
-    """CIE 1931 xy of the Planckian locus, Kim et al. 2002 cubic splines (1667 .. 25000 K)."""
-    if t <= 4000:
-        x = -0.2661239e9 / t ** 3 - 0.2343589e6 / t ** 2 + 0.8776956e3 / t + 0.179910
-    else:
-        x = -3.0258469e9 / t ** 3 + 2.1070379e6 / t ** 2 + 0.2226347e3 / t + 0.240390
-    if t <= 2222:
-        y = -1.1063814 * x ** 3 - 1.34811020 * x ** 2 + 2.18555832 * x - 0.20219683
-    elif t <= 4000:
-        y = -0.9549476 * x ** 3 - 1.37418593 * x ** 2 + 2.09137015 * x - 0.16748867
-    else:
-        y = 3.0817580 * x ** 3 - 5.87338670 * x ** 2 + 3.75112997 * x - 0.37001483
-    return x, y
-
-
-def _uv(x: float, y: float) -> tuple[float, float]:
-    d = -2 * x + 12 * y + 3
-    return 4 * x / d, 6 * y / d
-
-
-def cct_mccamy(rgb: np.ndarray | list[float]) -> float | None:
-    """Correlated colour temperature (K) of linear Rec. 709 RGB by McCamy's cubic in CIE xy
-    (C. S. McCamy, Color Res. Appl. 17(2), 1992; within a few K of the tabulated CCTs of D65, D50
-    and A). ``None`` for black or non-finite input, outside 1667 .. 25000 K, or farther than
-    Duv 0.05 from the Planckian locus (CIE 1960 uv; ANSI C78.377's limit for a CCT to mean
-    anything: a saturated colour has no colour temperature)."""
-    x_, y_, z_ = _RGB_TO_XYZ @ np.asarray(rgb, np.float64).reshape(3)
-    s = x_ + y_ + z_
-    if not np.isfinite(s) or s <= 0 or y_ <= 0:
-        return None
-    x, y = x_ / s, y_ / s
-    if abs(0.1858 - y) < 1e-9:
-        return None
-    n = (x - 0.3320) / (0.1858 - y)
-    t = 449.0 * n ** 3 + 3525.0 * n ** 2 + 6823.3 * n + 5520.33
-    if not 1667.0 <= t <= 25000.0:
-        return None
-    u, v = _uv(x, y)
-    up, vp = _uv(*_planck_xy(t))
-    return float(t) if math.hypot(u - up, v - vp) <= 0.05 else None
-
-
-def horizontal_illuminance(equirect: np.ndarray) -> np.ndarray:
-    """(3,) RGB of ``int L cos(theta) dw`` over the upper hemisphere (the light on an upward
-    surface at the probe; Y of it is illuminance in lux when the map is in nits). Exact row
-    weights; a pixel with any non-finite channel counts as zero (as in the photometric
-    calibration's ``upper_irradiance``, so Y is exactly what the lux meter was matched to)."""
-    from calibration.photometric import upper_row_weights
-
-    img = np.asarray(equirect)
-    h, w = img.shape[:2]
-    rows = upper_row_weights(h, w)
-    top = int(np.count_nonzero(rows))
-    band = img[:top].astype(np.float64)
-    band = np.where(np.isfinite(band).all(axis=-1, keepdims=True), band, 0.0)
-    return rows[:top] @ band.sum(axis=1)
-
-
-def primary_angles(direction: np.ndarray | list[float] | None) -> tuple[float | None, float | None]:
-    """(elevation above the horizon, azimuth) in degrees of a probe-frame direction, with
-    CONVENTIONS.md's azimuth: d = (sin t sin p, cos t, -sin t cos p), p in [0, 360)."""
-    if direction is None:
-        return None, None
-    d = np.asarray(direction, np.float64).reshape(3)
-    d = d / max(float(np.linalg.norm(d)), 1e-300)
-    elev = math.degrees(math.asin(float(np.clip(d[1], -1.0, 1.0))))
-    az = math.degrees(math.atan2(float(d[0]), float(-d[2]))) % 360.0
-    return round(elev, 3), round(az, 3)
-
-
-# ---- settings -------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class MqttSettings:
-    broker: BrokerAddress
-    password: str | None = None
-    keepalive: int = 10
-    prefix: str = DEFAULT_PREFIX
-    lights_rate: float = 10.0
-    sh_rate: float = 1.0
-    sensors_rate: float = 1.0
-    status_interval: float = 30.0
-    discovery: bool = True
-    discovery_prefix: str = "homeassistant"
-    ca_file: str | None = None
-
-    @classmethod
-    def from_config(cls, cfg: Any, url: str | None = None,
-                    env: dict[str, str] | None = None) -> MqttSettings | None:
-        """The ``[mqtt]`` table (``url`` overrides ``mqtt.url``); ``None`` when MQTT is off.
-        The password comes from ``password_file`` or ``$LIGHTPROBE_MQTT_PASSWORD``."""
-        env = dict(os.environ) if env is None else env
-        text = url if url is not None else str(cfg.get("mqtt", "url"))
-        if not text:
-            return None
-        broker = parse_broker_url(text, "--mqtt" if url is not None else "mqtt.url")
-        user = str(cfg.get("mqtt", "username")) or None
-        if user and broker.username and user != broker.username:
-            raise InputError("mqtt.username and the user in the broker URL differ", param="mqtt.username")
-        broker = BrokerAddress(broker.host, broker.port, broker.tls or bool(cfg.get("mqtt", "tls")),
-                               broker.username or user)
-        password = env.get(PASSWORD_ENV) or None
-        pfile = str(cfg.get("mqtt", "password_file"))
-        if pfile:
-            try:
-                password = Path(pfile).read_text(encoding="utf-8").strip()
-            except (OSError, UnicodeDecodeError) as e:
-                raise InputError(f"{pfile}: cannot read mqtt.password_file: {e}", param="mqtt.password_file") from e
-        ca = str(cfg.get("mqtt", "ca_file")) or None
-        if ca is not None and not Path(ca).is_file():
-            raise InputError(f"{ca}: mqtt.ca_file does not exist", param="mqtt.ca_file")
-        return cls(broker, password, int(cfg.get("mqtt", "keepalive")),
-                   check_prefix(str(cfg.get("mqtt", "topic_prefix"))),
-                   float(cfg.get("mqtt", "lights_rate")), float(cfg.get("mqtt", "sh_rate")),
-                   float(cfg.get("mqtt", "sensors_rate")), float(cfg.get("mqtt", "status_interval")),
-                   bool(cfg.get("mqtt", "discovery")),
-                   check_prefix(str(cfg.get("mqtt", "discovery_prefix")), "mqtt.discovery_prefix"), ca)
 
 
 class Source(Protocol):
     """What a publisher reads: the service (:class:`ServiceSource`) or a simulated fleet."""
 
     probe_id: str
-    hub: Any  # device.service.runner.FrameHub
+    hub: Any  # lightprobe.device.service.runner.FrameHub
 
     def status(self) -> dict[str, Any]: ...
     def unit(self) -> str: ...
     async def sh(self) -> bytes | None: ...
     async def sensors(self) -> dict[str, Any] | None: ...
-
-
-# ---- Home Assistant discovery ---------------------------------------------------------------------
-def ha_discovery(probe_id: str, status: dict[str, Any], unit: str,
-                 settings: MqttSettings) -> list[tuple[str, dict[str, Any]]]:
-    """(topic, config) of the probe's Home Assistant MQTT discovery messages: illuminance,
-    colour temperature, primary light elevation and azimuth, health. Keys are HA's documented
-    MQTT sensor options (no abbreviations)."""
-    node = f"lightprobe_{probe_id}"
-    state = topic(settings.prefix, probe_id, "sensors")
-    avail = topic(settings.prefix, probe_id, "status")
-    device = {"identifiers": [node], "name": status.get("name") or f"lightprobe {probe_id}",
-              "manufacturer": "lightprobe", "model": status.get("model") or "lightprobe",
-              "sw_version": str(status.get("sw_version", ""))}
-    if status.get("url"):
-        device["configuration_url"] = str(status["url"])
-    common = {"state_topic": state, "availability_topic": avail,
-              "availability_template": "{{ value_json.state }}", "payload_available": "online",
-              "payload_not_available": "offline", "device": device, "qos": 0,
-              "origin": {"name": "lightprobe", "sw_version": str(status.get("sw_version", ""))}}
-    lux = unit == "nit"
-    sensors: list[tuple[str, dict[str, Any]]] = [
-        ("illuminance", {"name": "Illuminance" if lux else "Relative illuminance",
-                         "value_template": "{{ value_json.illuminance }}", "state_class": "measurement",
-                         **({"device_class": "illuminance", "unit_of_measurement": "lx"} if lux
-                            else {"icon": "mdi:brightness-5"}),
-                         "suggested_display_precision": 1}),
-        ("colour_temperature", {"name": "Colour temperature", "value_template": "{{ value_json.cct }}",
-                                "unit_of_measurement": "K", "state_class": "measurement",
-                                "icon": "mdi:thermometer-lines", "suggested_display_precision": 0}),
-        ("light_elevation", {"name": "Primary light elevation", "value_template": "{{ value_json.elevation }}",
-                             "unit_of_measurement": "°", "state_class": "measurement",
-                             "icon": "mdi:angle-acute", "suggested_display_precision": 1}),
-        ("light_azimuth", {"name": "Primary light azimuth", "value_template": "{{ value_json.azimuth }}",
-                           "unit_of_measurement": "°", "state_class": "measurement",
-                           "icon": "mdi:compass-outline", "suggested_display_precision": 1}),
-        ("health", {"name": "Health", "value_template": "{{ value_json.health }}", "device_class": "enum",
-                    "options": ["ok", "degraded", "starting"], "entity_category": "diagnostic"}),
-    ]
-    out = []
-    for obj, cfg in sensors:
-        body = {**cfg, **common, "unique_id": f"{node}_{obj}", "object_id": f"{node}_{obj}"}
-        out.append((f"{settings.discovery_prefix}/sensor/{node}/{obj}/config", body))
-    return out
 
 
 def _dump(body: Any) -> bytes:
@@ -260,7 +83,7 @@ class ServiceSource:
                 "frames": s["frames"], "fps": s["fps"], "stale": s["stale"], "timestamp": time.time()}
 
     async def sh(self) -> bytes | None:
-        from device.service.payloads import sh_payload
+        from lightprobe.device.service.payloads import sh_payload
 
         return await sh_payload(self.st, "canonical")
 
@@ -274,20 +97,6 @@ class ServiceSource:
         prim = env.primary.direction if env is not None and env.primary is not None else None
         return sensor_body(rgb, self.unit(), prim, self.st.runner.status()["health"],
                            int(lights.frame), float(lights.timestamp))
-
-
-def sensor_body(rgb: np.ndarray, unit: str, primary: Any, health: str, frame: int,
-                timestamp: float) -> dict[str, Any]:
-    """The ``sensors`` payload from the horizontal irradiance RGB and the primary direction."""
-    from device.core.sphere import LUMINANCE_WEIGHTS
-
-    e = float(np.asarray(rgb, np.float64) @ LUMINANCE_WEIGHTS)
-    elev, az = primary_angles(primary)
-    cct = cct_mccamy(rgb)
-    return {"version": 1, "illuminance": round(e, 6) if math.isfinite(e) else None,
-            "illuminance_unit": "lx" if unit == "nit" else unit,
-            "cct": None if cct is None else round(cct, 1), "elevation": elev, "azimuth": az,
-            "health": health, "frame": frame, "timestamp": timestamp}
 
 
 # ---- the publisher --------------------------------------------------------------------------------

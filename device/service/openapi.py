@@ -1,7 +1,7 @@
 """The API contract served at ``/api/v1/openapi.json``: ``static/openapi.json`` (paths, prose,
 light-set schema) completed here so that it cannot drift from the code:
 
-- the ``Config`` and ``ConfigPatch`` schemas are generated from :data:`device.service.config.SCHEMA`
+- the ``Config`` and ``ConfigPatch`` schemas are generated from :data:`lightprobe.device.service.config.SCHEMA`
   (every table and key with its type, range, enum or pattern; no other key accepted);
 - every operation documents the statuses the middlewares can answer: 400 for bad input where it
   takes any, 401 / 403 / 429 where a token may be needed (writes; camera images and maps unless
@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from device.service.config import SCHEMA, _in
+from lightprobe.device.service.config import SCHEMA, in_range
 
 __all__ = ["config_schema", "document"]
 
@@ -41,12 +41,12 @@ def _key_schema(table: str, key: str) -> dict[str, Any]:
         s["type"] = "string"
     elif typ is list:
         s.update({"type": "array", "items": {"type": "string", "minLength": 1, "maxLength": 63}})
-    if isinstance(_check, _in):  # the validator's own bounds: one source
+    if isinstance(_check, in_range):  # the validator's own bounds: one source
         s["minimum"], s["maximum"] = _check.lo, _check.hi
     if (table, key) == ("pipeline", "nside"):  # the powers of two the validator accepts
         s["enum"] = [1 << k for k in range(16) if _check(1 << k)]
     if (table, key) == ("pipeline", "sampler"):
-        from device.service.config import SAMPLERS
+        from lightprobe.device.service.config import SAMPLERS
 
         s["enum"] = list(SAMPLERS)
     if (table, key) == ("probe", "id"):

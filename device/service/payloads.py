@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 
-from device.service.state import ServiceState
+from lightprobe.device.service.state import ServiceState
 
 __all__ = ["sg_body", "sg_payload", "sh_payload"]
 
@@ -32,7 +32,7 @@ async def sh_payload(st: ServiceState, conv: str) -> bytes | None:
 
 def sg_body(st: ServiceState) -> bytes | None:
     """The latest frame's SG lobes as JSON bytes (blocking: run in a thread), or ``None``."""
-    from device.core.sgfit import fit_sg
+    from lightprobe.device.formats.sgfit import fit_sg
 
     r = st.runner.result
     if r is None:

@@ -3,7 +3,7 @@
 - **Newest frame wins.** Each frame's light set is serialised once and stored in a
   :class:`FrameHub` slot that holds only the latest payload; WebSocket clients wait for a newer
   version than the one they sent, so a slow client skips frames and nothing queues without bound.
-- **Faults.** A :class:`drivers.base.CameraError` from ``pipeline.step()`` marks the published
+- **Faults.** A :class:`lightprobe.drivers.base.CameraError` from ``pipeline.step()`` marks the published
   lights ``stale: true`` (the last good set stays served), stops the pipeline (closing the
   camera) and reopens it with exponential backoff (``backoff_initial`` .. ``backoff_max``).
 - **Pacing.** The loop targets ``pipeline.fps`` from the config; heavy work happens inside the
@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from device.core.lightset import LightSet
+from lightprobe.core.lightset import LightSet
 
 __all__ = ["FrameHub", "PipelineLike", "Runner"]
 
@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 
 class PipelineLike(Protocol):
-    """The part of ``device.pipeline.Pipeline`` the service uses."""
+    """The part of ``lightprobe.device.pipeline.Pipeline`` the service uses."""
 
     stats: dict[str, Any]
 
@@ -137,7 +137,7 @@ class Runner:
         self.result: Any = None  # the last FrameResult
         self.lights: LightSet | None = None
         self.lights_text: str | None = None  # self.lights as JSON (serialised once, off the loop)
-        from device.core.environment import EnvironmentEstimator
+        from lightprobe.device.formats.sh_primary import EnvironmentEstimator
 
         self.estimator = EnvironmentEstimator()  # SH + primary light, incremental, on demand
         self._env_cache: Any = None  # the Environment of the frame it was last asked for
@@ -234,8 +234,8 @@ class Runner:
 
     # ---- the loop ---------------------------------------------------------------------------
     async def _run(self) -> None:
-        from device.core.errors import InputError
-        from drivers.base import CameraError
+        from lightprobe.core.errors import InputError
+        from lightprobe.drivers.base import CameraError
 
         backoff = self.backoff_initial
         while True:
@@ -286,7 +286,7 @@ class Runner:
         await self.hub.publish(payload)
 
     async def environment(self) -> Any:
-        """The latest frame's SH + primary light (``device.core.environment.Environment``), or
+        """The latest frame's SH + primary light (``lightprobe.device.formats.sh_primary.Environment``), or
         ``None`` before the first frame. Computed when first asked for each frame (in a worker
         thread), so a probe nobody asks for SH spends nothing on it; the estimator compares each
         map with the last one it saw, so the update stays incremental whatever frames it skips."""

@@ -1,6 +1,6 @@
 """What the handlers share: :class:`ServiceState` and the app's typed keys.
 
-Route modules (``device.service.routes``) and ``create_app`` (``device.service.app``) both import
+Route modules (``lightprobe.device.service.routes``) and ``create_app`` (``lightprobe.device.service.app``) both import
 this module; it imports neither, so the service has no import circle.
 """
 
@@ -17,10 +17,10 @@ from typing import Any
 
 from aiohttp import web
 
-from device.service.config import ServiceConfig
-from device.service.notify import Notifier
-from device.service.runner import Runner
-from device.service.viewmesh import ViewMesh
+from lightprobe.device.service.config import ServiceConfig
+from lightprobe.device.service.notify import Notifier
+from lightprobe.device.service.runner import Runner
+from lightprobe.device.service.viewmesh import ViewMesh
 
 __all__ = ["HOST", "PORT", "STATE", "VERSION", "AuthFailures", "ServiceState"]
 
@@ -90,8 +90,8 @@ class ServiceState:
     allowed_hosts: set[str] | None = None  # Host names answered (computed on first request)
     pending: dict[str, dict[str, Any]] = field(default_factory=dict)  # saved, applied at restart
     saved: ServiceConfig | None = None  # the config as saved (restart-only keys included), if it differs
-    guard: Any = None  # device.service.guard.ConnectionGuard of the listening socket, if any
-    mqtt: Any = None  # device.service.mqtt.MqttPublisher while publishing to a broker
+    guard: Any = None  # lightprobe.device.service.connection_limits.ConnectionGuard of the listening socket, if any
+    mqtt: Any = None  # lightprobe.device.service.mqtt.MqttPublisher while publishing to a broker
     _camera_lock: threading.Lock = field(default_factory=threading.Lock)
     _camera_error: Exception | None = None
 
@@ -102,7 +102,7 @@ class ServiceState:
     def camera_or_make(self) -> Any:
         """The camera, made now if nobody made it yet (blocking: call from a worker thread).
         A bad camera spec (InputError) is remembered and raised again without retrying."""
-        from device.core.errors import InputError
+        from lightprobe.core.errors import InputError
 
         with self._camera_lock:
             if self._camera_error is not None:

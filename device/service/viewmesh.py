@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from device.core.errors import InputError
+from lightprobe.core.errors import InputError
 
 __all__ = ["MAX_BYTES", "ViewMesh", "load_view_mesh"]
 

@@ -1,8 +1,8 @@
 """The ioctl transport: the only place that touches a V4L2 device node.
 
-:class:`IoctlTransport` is the seam between the V4L2 logic (``drivers.v4l2.camera``) and the
+:class:`IoctlTransport` is the seam between the V4L2 logic (``lightprobe.drivers.v4l2.camera``) and the
 kernel. :class:`DeviceTransport` is the real one: ``os.open`` (non-blocking) + ``fcntl.ioctl`` +
-``mmap``. ``sim.v4l2_fake.FakeV4L2Device`` implements the same interface for tests: it decodes
+``mmap``. ``lightprobe.sim.v4l2_fake.FakeV4L2Device`` implements the same interface for tests: it decodes
 the request numbers and struct bytes like the kernel would and records every call.
 
 errno mapping (done here, once): ENOENT/ENXIO at open -> CameraUnavailable, EACCES/EPERM ->
@@ -22,7 +22,7 @@ import mmap
 import os
 from typing import Protocol, runtime_checkable
 
-from drivers.base import CameraBusy, CameraDisconnected, CameraError, CameraUnavailable
+from lightprobe.drivers.base import CameraBusy, CameraDisconnected, CameraError, CameraUnavailable
 
 from ._structs import HOST_ABI, V4L2Abi
 

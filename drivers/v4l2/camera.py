@@ -1,4 +1,4 @@
-"""V4L2Camera: a ``drivers.base.Camera`` over a V4L2 capture node (USB/UVC webcams, CSI bridges).
+"""V4L2Camera: a ``lightprobe.drivers.base.Camera`` over a V4L2 capture node (USB/UVC webcams, CSI bridges).
 
 Lifecycle on ``open()`` (the kernel requires this order): QUERYCAP (must be a streaming capture
 device) -> ENUM_FMT / ENUM_FRAMESIZES / ENUM_FRAMEINTERVALS (modes) -> S_FMT -> controls (auto
@@ -11,7 +11,7 @@ Frames: timestamps are the buffer's CLOCK_MONOTONIC time when ``flags & 0xE000 =
 (otherwise the dequeue time, marked ``extra["timestamp_source"] = "dequeue"``); a jump in the
 buffer sequence counts dropped frames (``extra["dropped"]``, running total in ``dropped_frames``).
 V4L2 has no per-frame exposure: ``exposure_verified`` is always False and a frame reports a new
-exposure only once :class:`drivers.v4l2.settle.SettleTracker` says it has settled (frame-count
+exposure only once :class:`lightprobe.drivers.v4l2.settle.SettleTracker` says it has settled (frame-count
 latency, then a brightness-step check); until then it reports the previous exposure.
 
 Replug: open by ``/dev/v4l/by-id/...``; after :class:`CameraDisconnected`, ``close()`` then
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import (
+from lightprobe.drivers.base import (
     Camera,
     CameraError,
     CameraUnavailable,
@@ -114,7 +114,7 @@ def _max_fps(t: IoctlTransport, pixfmt: int, w: int, h: int) -> float:
 
 
 class V4L2Camera(Camera):
-    """A V4L2 capture node as a :class:`drivers.base.Camera`.
+    """A V4L2 capture node as a :class:`lightprobe.drivers.base.Camera`.
 
     Parameters
     ----------
@@ -122,7 +122,7 @@ class V4L2Camera(Camera):
     opener : makes the transport; default ``DeviceTransport(path)`` (tests pass a fake node's
         ``open``).
     controls_factory : builds the control backend from the open transport; default
-        :class:`V4L2Controls`. ``drivers.uvc`` passes one that falls back to UVC over USB.
+        :class:`V4L2Controls`. ``lightprobe.drivers.uvc`` passes one that falls back to UVC over USB.
     buffer_count : mmap buffers (>= 2).
     sensor_latency_frames : frames between S_CTRL and the sensor using it; the reported
         ``control_latency_frames`` adds the buffers that may already hold older frames.

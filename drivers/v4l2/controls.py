@@ -1,8 +1,8 @@
 """Exposure and gain controls: the V4L2 implementation and the interface UVC-over-USB shares.
 
-:class:`ControlBackend` is what :class:`drivers.v4l2.camera.V4L2Camera` needs to set exposure and
+:class:`ControlBackend` is what :class:`lightprobe.drivers.v4l2.camera.V4L2Camera` needs to set exposure and
 gain. :class:`V4L2Controls` does it with VIDIOC_QUERYCTRL / S_CTRL / G_CTRL by control *id*
-(control names changed across kernels); ``drivers.uvc.UvcControls`` does it with UVC class
+(control names changed across kernels); ``lightprobe.drivers.uvc.UvcControls`` does it with UVC class
 requests over pyusb, for devices whose V4L2 node lacks the controls.
 
 Order matters and is always the same (``apply_all``): auto exposure -> manual (1) first, then
@@ -19,7 +19,7 @@ import logging
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from drivers.base import ControlNotSupported
+from lightprobe.drivers.base import ControlNotSupported
 
 from . import _structs as S
 from ._ioctl import IoctlError, IoctlTransport

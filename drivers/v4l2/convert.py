@@ -1,4 +1,4 @@
-"""Pixel conversions from V4L2 buffer layouts to the frames of ``drivers.base``.
+"""Pixel conversions from V4L2 buffer layouts to the frames of ``lightprobe.drivers.base``.
 
 Pure functions, bytes in, arrays out. Processed formats (YUYV 4:2:2, MJPEG, GREY) become (H, W, 3)
 uint8 RGB; Bayer formats become (H, W, 3) demosaiced RGB with the bit depth of the sensor: uint8

@@ -1,13 +1,16 @@
-"""Host relighting with visibility cuts (Iwasaki et al.): SVC / VCF precomputation with Embree,
-height-coded cuts, counter-based multi-cut traversal, dynamic lights, BRDFs, views and moving
-(translated and rotated) rigid objects. Importing this package does nothing; see ``cli.py`` for
-the command.
+"""Host relighting: 3D scenes lit by the probes' lights, one subpackage per method over a
+shared part. Importing this package does nothing; the commands are ``lightprobe relight`` and
+``lightprobe room`` (:mod:`lightprobe.cli.relight`, :mod:`lightprobe.cli.room`).
 
-Modules: ``directions`` (2^15 directions, depth-15 tree), ``cuts`` (selection, coding, products,
-interpolation), ``scene`` (scene JSON, OBJ), ``precompute`` (SVC, VCF, disk cache), ``lighting``
-(per-cluster light integrals: prefix sums and the per-node table), ``kernels`` (numba shading:
-BRDFs, static SVC shading, counter-based dynamic shading, brute force), ``occlusion`` (shadows
-of movable objects from their VCFs), ``raster`` (ID buffer, image resolve, tone map), ``render``
-(run-time state and caches), ``reference`` (brute force), ``live`` (WebSocket re-rendering),
-``cli``.
+Shared: :mod:`.scene` (scene JSON, OBJ, cameras, materials), :mod:`.raster` (ID buffer, image
+resolve, tone map, image files), :mod:`.rays` (Embree scenes of meshes, occlusion queries, ray
+offsets).
+
+Methods:
+
+- :mod:`.cuts`: visibility cuts (Iwasaki et al.), precomputed per scene, rigid objects that move
+  and turn;
+- :mod:`.sg`: spherical Gaussians (Michiels et al. 2015), no precompute, meshes that deform;
+- :mod:`.room`: the real, photographed room (Loscos et al. 1999), its reflectance recovered and
+  rendered under other lights.
 """

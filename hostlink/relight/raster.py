@@ -6,12 +6,14 @@ Dtype policy: float64 geometry, float32 barycentrics and rays, 8-bit output of :
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
 
-from device.core.sphere import luminance
-from hostlink.relight.scene import Camera
+from lightprobe.core.errors import InputError
+from lightprobe.core.sphere import luminance
+from lightprobe.hostlink.relight.scene import Camera
 
 __all__ = ["Raster", "camera_basis", "lookup_equirect", "rasterize", "resolve", "tonemap", "view_rays",
            "visible_vertices"]
@@ -35,7 +37,7 @@ def camera_basis(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _raster(sx: np.ndarray, sy: np.ndarray, z: np.ndarray, faces: np.ndarray, W: int, H: int,
+def raster_triangles(sx: np.ndarray, sy: np.ndarray, z: np.ndarray, faces: np.ndarray, W: int, H: int,
             tri: np.ndarray, bary: np.ndarray, depth: np.ndarray) -> None:
     for t in range(faces.shape[0]):
         a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
@@ -79,7 +81,7 @@ def rasterize(cam: Camera, vertices: np.ndarray, faces: np.ndarray, rays: bool =
     sy = (1 - yc / (zsafe * th)) / 2 * H - 0.5
     tri = np.full((H, W), -1, np.int64)
     bary = np.zeros((H, W, 3), np.float32)
-    _raster(sx, sy, zc, np.asarray(faces, np.int64), W, H, tri, bary, np.zeros((H, W)))
+    raster_triangles(sx, sy, zc, np.asarray(faces, np.int64), W, H, tri, bary, np.zeros((H, W)))
     return Raster(tri, bary, view_rays(cam) if rays else None)
 
 
@@ -136,10 +138,24 @@ def tonemap(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 
 
 def lookup_equirect(img: np.ndarray, d: np.ndarray) -> np.ndarray:
-    from device.core.sphere import angles_from_directions
+    from lightprobe.core.sphere import angles_from_directions
 
     theta, phi = angles_from_directions(d.astype(np.float64))
     h, w = img.shape[:2]
     r = np.clip((theta / np.pi * h).astype(int), 0, h - 1)
     c = np.clip((np.mod(phi, 2 * np.pi) / (2 * np.pi) * w).astype(int), 0, w - 1)
     return img[r, c, :3]
+
+
+def write_image(path: Path, img: np.ndarray, mask: np.ndarray | None = None) -> None:
+    """PNG (tone-mapped, cv2) or EXR (linear, lightprobe.core.imageio.write_exr)."""
+    if path.suffix.lower() == ".exr":
+        from lightprobe.core.imageio import write_exr
+
+        write_exr(path, img.astype(np.float32), {"unit": "relative", "source": "lightprobe relight"})
+        return
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), tonemap(img, mask)):
+        raise InputError(f"{path}: cannot write image", param="--out")

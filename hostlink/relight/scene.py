@@ -15,11 +15,11 @@ Scene file (JSON, ``version: 1``; mesh paths relative to the scene file)::
 A deforming object lists its shapes: ``"frames": ["spot_000.obj", "spot_001.obj", ...]``, OBJ files
 with the mesh's vertex count and faces, transformed like the mesh; ``--method sg`` renders any of
 them with no precompute (``lightprobe relight SCENE --method sg --frame K``;
-:meth:`hostlink.relight.sg.SGRelighter.set_frame`), the cuts use ``mesh``.
+:meth:`lightprobe.hostlink.relight.sg.relighter.SGRelighter.set_frame`), the cuts use ``mesh``.
 
 Material types: ``lambert`` (kd), ``phong`` / ``blinn-phong`` (kd, ks, exponent), ``ward`` (kd,
 ks, alpha). Rotations are XYZ Euler angles in degrees, applied after scale and before translation.
-Errors in the file raise :class:`device.core.errors.InputError` naming the file (and line for OBJ).
+Errors in the file raise :class:`lightprobe.core.errors.InputError` naming the file (and line for OBJ).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from device.core.errors import InputError
+from lightprobe.core.errors import InputError
 
 __all__ = [
     "MATERIAL_TYPES",

@@ -2,10 +2,10 @@
 
 ``Q2TreeSampler`` is the public class (``make_sampler("q2tree", ...)``); ``nodes_to_uniq`` /
 ``uniq_to_nodes`` convert between (level, NESTED index) leaf arrays and light ids (HEALPix NUNIQ); they are
-defined with the wire format in :mod:`device.core.q2wire`.
+defined with the wire format in :mod:`lightprobe.core.q2wire`.
 """
 
-from device.core.q2wire import nodes_to_uniq, uniq_to_nodes
+from lightprobe.core.q2wire import nodes_to_uniq, uniq_to_nodes
 
 from .sampler import MAX_NSIDE, Q2TreeSampler, auto_nside
 

@@ -52,8 +52,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from device.core.healpix import pix2vec_nest, vec2pix_nest
-from device.core.sphere import LUMINANCE_WEIGHTS, equirect_directions, equirect_row_solid_angle
+from lightprobe.core.healpix import pix2vec_nest, vec2pix_nest
+from lightprobe.core.sphere import LUMINANCE_WEIGHTS, equirect_directions, equirect_row_solid_angle
 
 __all__ = [
     "PIXELS_PER_COARSE_QUAD",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.core.q2wire import jitter_directions
+from lightprobe.core.q2wire import jitter_directions
 
 from ._binning import FrameState, equirect_tables, healpix_tables
 

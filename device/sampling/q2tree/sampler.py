@@ -60,9 +60,9 @@ from typing import Any
 
 import numpy as np
 
-from device.core.errors import InputError
-from device.core.lightset import LightSet
-from device.core.q2wire import jitter_directions, uniq_to_nodes
+from lightprobe.core.errors import InputError
+from lightprobe.core.lightset import LightSet
+from lightprobe.core.q2wire import jitter_directions, uniq_to_nodes
 
 from ..base import sanitize_radiance
 from . import _kernels
@@ -106,7 +106,7 @@ class Q2TreeSampler:
     seed : seed of the jitter hash.
     peaks : also run peak detection on equirect input and publish ``extra["peaks"]``.
     error_target : if set, ``sample`` may use fewer lights than asked, chosen by
-        :func:`device.sampling.peaks.choose_light_count` for this diffuse-error target.
+        :func:`lightprobe.device.sampling.peaks.choose_light_count` for this diffuse-error target.
 
     After each call ``stats`` holds ``mode`` ("full" or "incremental" tree),
     ``pyramid_mode`` ("full" or "incremental" binning) and ``changed_quads`` (coarse quads
@@ -193,7 +193,7 @@ class Q2TreeSampler:
 
     def to_nodes(self) -> tuple[np.ndarray, np.ndarray]:
         """The leaf set as (level, NESTED index) int64 arrays, for serialising and merging trees
-        on the host (Nikodym et al. 2013, Algorithm 2). ``device.sampling.q2tree.nodes_to_uniq``
+        on the host (Nikodym et al. 2013, Algorithm 2). ``lightprobe.device.sampling.q2tree.nodes_to_uniq``
         turns them back into the light ids."""
         return uniq_to_nodes(self.leaf_ids())
 

@@ -5,5 +5,5 @@
 - :mod:`.q2tree`: ``/api/v1/q2tree`` (the binary tree for host-side merging);
 - :mod:`.calibration`: ``/api/v1/calibration`` and the technician's ``/calibrate`` page.
 
-Handlers read the shared state through :data:`device.service.state.STATE`.
+Handlers read the shared state through :data:`lightprobe.device.service.state.STATE`.
 """

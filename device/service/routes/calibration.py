@@ -4,15 +4,15 @@
 - ``POST /api/v1/calibration/live`` (token): start a session. Body (JSON, all optional but
   ``board``): ``{"board": {"cols": 9, "rows": 6, "square": 0.04}, "targets": {"min_views": 6,
   "rms_px": 0.5, "coverage": 0.6}, "exposure_s": null, "timeout_s": 900, "idle_timeout_s": 120}``.
-  The runner pauses the light pipeline (:meth:`device.service.runner.Runner.camera_lease`:
+  The runner pauses the light pipeline (:meth:`lightprobe.device.service.runner.Runner.camera_lease`:
   lights stay served with ``stale: true``, ``/status`` shows the camera ``calibrating``); the
   session meters once (unless ``exposure_s`` is given), then grabs frames at that fixed exposure
-  and feeds :class:`calibration.live.LiveFisheyeCalibration`.
+  and feeds :class:`lightprobe.calibration.live.LiveFisheyeCalibration`.
 - ``GET  /api/v1/calibration/live``: progress (views accepted/rejected, coverage grid and
   percent, RMS, ``good_enough``, the last detection's corners for drawing).
 - ``GET  /api/v1/calibration/live/frame.jpg``: the last frame the session saw.
 - ``POST /api/v1/calibration/live/commit`` (token): 409 until good enough; then the solve is
-  written to the calibration store (atomic, :mod:`calibration.store`) and the pipeline restarts on
+  written to the calibration store (atomic, :mod:`lightprobe.calibration.store`) and the pipeline restarts on
   it. A failed solve or write keeps the previous calibration serving (the session ends).
 - ``DELETE /api/v1/calibration/live`` (token): cancel; the pipeline resumes.
 
@@ -38,9 +38,9 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
-from device.core.errors import InputError
-from device.service.errors import ApiError
-from device.service.state import STATE, ServiceState
+from lightprobe.core.errors import InputError
+from lightprobe.device.service.errors import ApiError
+from lightprobe.device.service.state import STATE, ServiceState
 
 __all__ = ["LiveSession", "add_routes"]
 
@@ -55,7 +55,7 @@ class LiveSession:
     """One live calibration session (state shared by its task and the handlers)."""
 
     id: str
-    live: Any  # calibration.live.LiveFisheyeCalibration
+    live: Any  # lightprobe.calibration.live.LiveFisheyeCalibration
     base: Any  # the Calibration serving when the session started
     circle: tuple[float, float, float]
     targets: dict[str, float]
@@ -177,7 +177,7 @@ def _serving(st: ServiceState, desk: Desk) -> Any:
     cal = getattr(st.runner.pipeline, "calibration", None)
     if cal is not None or desk.state_dir is None:
         return cal
-    from calibration.store import load_calibration
+    from lightprobe.calibration.store import load_calibration
 
     try:
         return load_calibration(desk.state_dir, st.camera)
@@ -212,7 +212,7 @@ def _summary(cal: Any) -> dict[str, Any] | None:
 
 
 def _history(state_dir: Path | None) -> list[dict[str, Any]]:
-    from calibration.store import CalibrationStore, CorruptCalibration
+    from lightprobe.calibration.store import CalibrationStore, CorruptCalibration
 
     if state_dir is None:
         return []
@@ -236,7 +236,7 @@ def _history(state_dir: Path | None) -> list[dict[str, Any]]:
 async def _meter(camera: Any, sess: LiveSession, tries: int = 6) -> float:
     """A fixed exposure for the session: the 99th percentile of the frame near 75% of full
     scale (a few capture/adjust rounds, waiting out the control latency)."""
-    from drivers.base import Controls
+    from lightprobe.drivers.base import Controls
 
     lo, hi = camera.capabilities.exposure_range
     exposure = float(np.clip(sess.exposure_s or 1.0 / 60.0, lo, hi))
@@ -273,8 +273,8 @@ async def _capture_loop(st: ServiceState, camera: Any, sess: LiveSession) -> Non
 
 def _commit_blocking(desk: Desk, sess: LiveSession) -> dict[str, Any]:
     """Write the solve into the store as a new version (other sections kept)."""
-    from calibration.store import CalibrationStore
-    from device.core.calibration import Calibration
+    from lightprobe.calibration.store import CalibrationStore
+    from lightprobe.core.calibration import Calibration
 
     res = sess.live.result
     if res is None or desk.state_dir is None:
@@ -287,7 +287,7 @@ def _commit_blocking(desk: Desk, sess: LiveSession) -> dict[str, Any]:
 
 
 async def _run_session(st: ServiceState, desk: Desk, sess: LiveSession, cam: Any) -> None:
-    from drivers.base import BoardTarget, CameraError
+    from lightprobe.drivers.base import BoardTarget, CameraError
 
     try:
         async with st.runner.camera_lease(cam) as camera:
@@ -352,8 +352,8 @@ async def get_calibration(request: web.Request) -> web.Response:
 
 
 async def start_live(request: web.Request) -> web.Response:
-    from calibration.fisheye import BoardSpec, equidistant_guess
-    from calibration.live import LiveFisheyeCalibration
+    from lightprobe.calibration.fisheye import BoardSpec, equidistant_guess
+    from lightprobe.calibration.live import LiveFisheyeCalibration
 
     st, desk = _desk(request)
     opts = parse_start(await _json_body(request))
@@ -399,11 +399,11 @@ async def get_live(request: web.Request) -> web.Response:
 
 
 def _encode(frame: np.ndarray) -> bytes:
-    from device.service.encode import encode_jpeg
+    from lightprobe.device.service.encode import encode_jpeg
 
     rgb = frame if frame.dtype == np.uint8 and frame.ndim == 3 else None
     if rgb is None:
-        from calibration.live import frame_to_gray
+        from lightprobe.calibration.live import frame_to_gray
 
         g = frame_to_gray(frame)
         rgb = np.repeat(g[..., None], 3, axis=2)

@@ -1,7 +1,7 @@
-"""Host formats of the live lighting (``device.formats``), under ``/api/v1``:
+"""Host formats of the live lighting (``lightprobe.device.formats``), under ``/api/v1``:
 
 - ``GET sh?convention=canonical|threejs|webxr|filament|unity``: order-2 SH (all light and
-  ambient) plus the primary light, JSON (``device.core.environment``), for the latest frame;
+  ambient) plus the primary light, JSON (``lightprobe.device.formats.sh_primary``), for the latest frame;
 - ``GET cubemap.ktx2?size=N&levels=M``: the GGX-prefiltered cube map (RGBA16F KTX2), and
   ``GET cubemap/{px,nx,py,ny,pz,nz}.exr?mip=m`` its faces as float32 EXR;
 - ``GET environment.gltf`` (+ ``environment/*.png``) and ``GET environment.usda`` (+ the latlong
@@ -12,7 +12,7 @@ The SH and primary light are computed when asked, once per frame (``Runner.envir
 scene files are built on request in a worker thread and kept until the *lighting* changes (keyed
 by a digest of the map, not by frame: a static room is filtered once). The map's pixels are an
 image of the room: everything here except ``sh`` needs the token unless
-``service.public_images`` (``device.service.app.PRIVATE_PREFIXES``).
+``service.public_images`` (``lightprobe.device.service.app.PRIVATE_PREFIXES``).
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
-from device.core.errors import InputError
-from device.core.sh import CONVENTIONS
-from device.service.errors import ApiError
-from device.service.payloads import sg_payload
-from device.service.routes.probe import check_query, static_handler
-from device.service.state import STATE, VIEW_MESH, ServiceState
+from lightprobe.core.errors import InputError
+from lightprobe.core.sh import CONVENTIONS
+from lightprobe.device.service.errors import ApiError
+from lightprobe.device.service.payloads import sg_payload
+from lightprobe.device.service.routes.probe import check_query, static_handler
+from lightprobe.device.service.state import STATE, VIEW_MESH, ServiceState
 
 __all__ = ["add_routes"]
 
@@ -92,7 +92,7 @@ class _LightingCache:
 
     def filter(self, size: int, levels: int) -> Any:
         """A cube-map filter for the size and mip count (its tables kept for the last few asked)."""
-        from device.formats.cubemap import CubemapFilter
+        from lightprobe.device.formats.cubemap import CubemapFilter
 
         f = self.filters.pop((size, levels), None)
         if f is None:
@@ -149,7 +149,7 @@ async def sg(request: web.Request) -> web.Response:
 
 
 async def cubemap_ktx2(request: web.Request) -> web.Response:
-    from device.core.ktx2 import ktx2_cubemap_bytes
+    from lightprobe.core.ktx2 import ktx2_cubemap_bytes
 
     st = request.app[STATE]
     check_query(request, {"size", "levels"})
@@ -172,8 +172,8 @@ async def cubemap_ktx2(request: web.Request) -> web.Response:
 
 
 async def cubemap_face(request: web.Request) -> web.Response:
-    from device.core.imageio import exr_bytes
-    from device.formats.cubemap import FACE_NAMES  # numba: kept off the start-up path
+    from lightprobe.core.imageio import exr_bytes
+    from lightprobe.device.formats.cubemap import FACE_NAMES  # numba: kept off the start-up path
 
     st = request.app[STATE]
     check_query(request, {"size", "levels", "mip"})
@@ -198,8 +198,8 @@ async def cubemap_face(request: web.Request) -> web.Response:
 
 async def _scene(request: web.Request) -> tuple[dict[str, Any], dict[str, bytes], str]:
     """The glTF document and images, and the USD text, of the latest lighting (cached)."""
-    from device.core.primary import ambient_map
-    from device.formats.scene import gltf_environment, usd_environment
+    from lightprobe.device.formats.primary import ambient_map
+    from lightprobe.device.formats.scene import gltf_environment, usd_environment
 
     st = request.app[STATE]
     r, env = await _latest(st)
@@ -208,7 +208,7 @@ async def _scene(request: web.Request) -> tuple[dict[str, Any], dict[str, bytes]
     flt = cache.filter(64, 5)  # 64 down to 4, as the cube-map endpoint's default
 
     def build() -> tuple[dict[str, Any], dict[str, bytes], str]:
-        from device.core.imageio import exr_bytes
+        from lightprobe.core.imageio import exr_bytes
 
         amb = ambient_map(r.equirect, env.primary)
         cm = flt.filter(amb)

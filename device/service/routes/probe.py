@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 from aiohttp import WSMsgType, web
 
-from device.core.errors import InputError
-from device.service.config import SAMPLERS, save_config
-from device.service.encode import encode_hdr, encode_jpeg
-from device.service.errors import ApiError
-from device.service.payloads import sg_payload, sh_payload
-from device.service.state import STATE, ServiceState
+from lightprobe.core.errors import InputError
+from lightprobe.device.service.config import SAMPLERS, save_config
+from lightprobe.device.service.encode import encode_hdr, encode_jpeg
+from lightprobe.device.service.errors import ApiError
+from lightprobe.device.service.payloads import sg_payload, sh_payload
+from lightprobe.device.service.state import STATE, ServiceState
 
 __all__ = ["add_routes"]
 
@@ -116,7 +116,7 @@ async def lights(request: web.Request) -> web.Response:
         if st.runner.lights_text is None:
             _current(st)
         return web.Response(text=st.runner.lights_text, content_type="application/json")
-    from device.pipeline import lights_on_demand
+    from lightprobe.device.pipeline import lights_on_demand
 
     # from the published frame, not the pipeline: a camera reconnecting, a calibration session
     # or a pipeline rebuilt after a change keeps the last good frame sampleable
@@ -128,7 +128,7 @@ async def lights(request: web.Request) -> web.Response:
 
 
 async def probe_exr(request: web.Request) -> web.Response:
-    from device.core.imageio import exr_bytes
+    from lightprobe.core.imageio import exr_bytes
 
     st = request.app[STATE]
     r = _current(st)
@@ -156,9 +156,10 @@ async def preview(request: web.Request) -> web.Response:
         raise InputError(f"view must be 'fisheye' or 'equirect', got {view[:40]!r}", param="view")
     r = _current(st)
     if view == "fisheye":
-        data = await _cached(st, "jpg-fisheye", encode_jpeg, np.asarray(r.preview, np.uint8))
+        # the preview is made on first use (a tone map of a whole frame): in the worker thread too
+        data = await _cached(st, "jpg-fisheye", lambda res: encode_jpeg(np.asarray(res.preview, np.uint8)), r)
     else:
-        from device.tonemap import tone_map  # the same operator as the fisheye preview
+        from lightprobe.device.tonemap import tone_map  # the same operator as the fisheye preview
 
         data = await _cached(st, "jpg-equirect", lambda m: encode_jpeg(tone_map(m)), r.equirect)
     return web.Response(body=data, content_type="image/jpeg")
@@ -217,7 +218,7 @@ async def put_config(request: web.Request) -> web.Response:
                              param="service.host")
         mesh = new_saved.get("view", "mesh")
         if mesh and mesh != saved.get("view", "mesh"):  # a file the next start could not load: 400 now
-            from device.service.viewmesh import load_view_mesh
+            from lightprobe.device.service.viewmesh import load_view_mesh
 
             await asyncio.to_thread(load_view_mesh, mesh)
         transport = request.transport
@@ -341,7 +342,7 @@ def _bound_send_buffer(request: web.Request) -> None:
 async def _drain_incoming(ws: web.WebSocketResponse, subs: dict[str, Any]) -> None:
     """Process control frames and subscription messages (see :func:`stream`); an invalid
     subscription gets one error message back and changes nothing."""
-    from device.core.sh import CONVENTIONS
+    from lightprobe.core.sh import CONVENTIONS
 
     async for msg in ws:
         if msg.type == WSMsgType.ERROR:
@@ -382,7 +383,7 @@ def static_handler(static_dir: Path, name: str) -> Any:
 
 
 def _openapi_handler(static_dir: Path) -> Any:
-    from device.service.openapi import document
+    from lightprobe.device.service.openapi import document
 
     async def handler(request: web.Request) -> web.Response:
         return web.Response(text=document(static_dir), content_type="application/json")

@@ -3,11 +3,11 @@
 The tree is built fresh on the latest frame's published map (``Q2TreeSampler`` with zero hysteresis and
 jitter placement, so it is a function of the map alone and the host can reproduce the lights
 from the leaves), with ``count`` lights (query, default ``pipeline.light_count``). The body is
-the binary encoding of :mod:`device.core.q2wire` (``application/x-lightprobe-q2tree``); the frame,
+the binary encoding of :mod:`lightprobe.core.q2wire` (``application/x-lightprobe-q2tree``); the frame,
 probe id, unit and timestamp travel in ``X-Lightprobe-*`` headers. Encoded once per frame and
 count (the runner clears its cache on every new frame); the tree is built in a worker thread.
 
-Wire it with ``add_routes(app)`` after :func:`device.service.routes.probe.add_routes`.
+Wire it with ``add_routes(app)`` after :func:`lightprobe.device.service.routes.probe.add_routes`.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
-from device.core.errors import InputError
-from device.service.errors import ApiError
-from device.service.state import STATE
+from lightprobe.core.errors import InputError
+from lightprobe.device.service.errors import ApiError
+from lightprobe.device.service.state import STATE
 
 __all__ = ["CONTENT_TYPE", "add_routes", "q2tree_bytes", "q2tree_handler"]
 
@@ -34,11 +34,11 @@ def q2tree_bytes(result: Any, count: int, nside_max: int = 256) -> bytes:
     a thread): the map the light sets and ``probe.exr`` publish (the upper hemisphere), so the
     leaves sum to the served map's integral; the tree's finest level is ``min(auto nside,
     nside_max)``."""
-    from device.core.q2wire import Q2Tree, encode_q2tree, nodes_to_uniq
-    from device.sampling.base import sanitize_radiance
-    from device.sampling.q2tree import Q2TreeSampler
-    from device.sampling.q2tree._nodes import pyramid_from_equirect
-    from device.sampling.q2tree.sampler import auto_nside
+    from lightprobe.core.q2wire import Q2Tree, encode_q2tree, nodes_to_uniq
+    from lightprobe.device.sampling.base import sanitize_radiance
+    from lightprobe.device.sampling.q2tree import Q2TreeSampler
+    from lightprobe.device.sampling.q2tree._nodes import pyramid_from_equirect
+    from lightprobe.device.sampling.q2tree.sampler import auto_nside
 
     clean, _ = sanitize_radiance(np.asarray(result.equirect))
     top = min(auto_nside(clean.shape[0]), nside_max)

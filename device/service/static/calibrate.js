@@ -62,7 +62,7 @@
     const grid = last.coverage.grid, rings = last.coverage.rings, sectors = last.coverage.sectors;
     let missing = 0, inside = 0;
     for (let i = 0; i < rings; i++) {
-      // equal-area rings: radii R sqrt(i / rings) .. R sqrt((i + 1) / rings) (calibration.fisheye)
+      // equal-area rings: radii R sqrt(i / rings) .. R sqrt((i + 1) / rings) (lightprobe.calibration.fisheye)
       const r0 = R * Math.sqrt(i / rings), r1 = R * Math.sqrt((i + 1) / rings);
       for (let j = 0; j < sectors; j++) {
         const n = grid[i][j];
