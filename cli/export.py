@@ -60,7 +60,6 @@ def _pose(path: Path | None) -> dict[str, Any] | None:
 def _run(args: argparse.Namespace) -> int:
     from lightprobe.core.fsutil import atomic_write
     from lightprobe.core.imageio import exr_bytes, read_hdr_image
-    from lightprobe.core.ktx2 import ktx2_cubemap_bytes
     from lightprobe.device.formats.cubemap import CubemapFilter
     from lightprobe.device.formats.primary import ambient_map
     from lightprobe.device.formats.scene import gltf_bytes, gltf_environment, usd_environment
@@ -76,9 +75,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.format == "sh":
         atomic_write(out, json.dumps(env.to_json(args.convention), indent=1).encode())
     elif args.format == "ktx2":
-        cm = flt.filter(image)
-        atomic_write(out, ktx2_cubemap_bytes(cm.mips, {"lightprobe.roughness": ",".join(f"{x:g}" for x in cm.roughness),
-                                                      "lightprobe.unit": args.unit}))
+        atomic_write(out, flt.filter(image).ktx2(args.unit))
     elif args.format == "gltf":
         cm = flt.filter(ambient_map(image, env.primary))
         image_dir = f"{out.stem}_files"

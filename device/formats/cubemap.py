@@ -290,6 +290,15 @@ class Cubemap:
     def size(self) -> int:
         return int(self.mips[0].shape[1])
 
+    def ktx2(self, unit: str) -> bytes:
+        """The cube map as the probe serves it and ``lightprobe export`` writes it: RGBA16F KTX2
+        (:mod:`lightprobe.core.ktx2`) with each mip's roughness, the unit and the face table."""
+        from lightprobe.core.ktx2 import ktx2_cubemap_bytes
+
+        return ktx2_cubemap_bytes(self.mips, {"lightprobe.roughness": ",".join(f"{x:g}" for x in self.roughness),
+                                              "lightprobe.unit": str(unit),
+                                              "lightprobe.faces": "+X,-X,+Y,-Y,+Z,-Z probe frame, +y up"})
+
 
 class CubemapFilter:
     """Prefilters maps into :class:`Cubemap` s of one size and mip count (texel directions and

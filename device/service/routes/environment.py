@@ -149,8 +149,6 @@ async def sg(request: web.Request) -> web.Response:
 
 
 async def cubemap_ktx2(request: web.Request) -> web.Response:
-    from lightprobe.core.ktx2 import ktx2_cubemap_bytes
-
     st = request.app[STATE]
     check_query(request, {"size", "levels"})
     size, levels = _cube_params(request)
@@ -159,13 +157,7 @@ async def cubemap_ktx2(request: web.Request) -> web.Response:
     digest = await _map_digest(st, r)
     flt = cache.filter(size, levels)
 
-    def build() -> bytes:
-        cm = flt.filter(r.equirect)
-        return ktx2_cubemap_bytes(cm.mips, {"lightprobe.roughness": ",".join(f"{x:g}" for x in cm.roughness),
-                                            "lightprobe.unit": str(env.unit),
-                                            "lightprobe.faces": "+X,-X,+Y,-Y,+Z,-Z probe frame, +y up"})
-
-    data = await cache.get(("ktx2", size, levels), digest, build)
+    data = await cache.get(("ktx2", size, levels), digest, lambda: flt.filter(r.equirect).ktx2(env.unit))
     return web.Response(body=data, content_type="image/ktx2",
                         headers={"Content-Disposition": 'inline; filename="cubemap.ktx2"',
                                  "X-Lightprobe-Frame": str(int(r.frame))})
