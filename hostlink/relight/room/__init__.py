@@ -2,11 +2,13 @@
 known lights, then the room rendered under other lights. Importing this package does nothing;
 the command is ``lightprobe room``.
 
-Modules along the method's steps: :mod:`.io` (the room folder's files), :mod:`.item_buffer`
-(patches, the camera's raster of them, footprints), :mod:`.radiosity` (direct light and the
-radiosity solve), :mod:`.recovery` (reflectance and its filters), :mod:`.alignment` (snapping,
-objects moved where the captures put them), :mod:`.rendering` (the room under other lights,
-virtual objects, removals); :mod:`.room` (:class:`~.room.Room`, the front: what it does and
-leaves out), :mod:`.settings`, :mod:`.kernels` (numba), :mod:`.probes` (lamps placed from the
-probes' SG peaks).
+:class:`~.room.Room` is the front (:mod:`.room`: what the method does and leaves out); it is
+built of the method's steps, each a class that extends the one before: :mod:`.model`
+(``RoomModel``: patches, the item buffer, each lamp's direct light), :mod:`.radiosity`
+(``RoomRadiosity``: form factors, the radiosity solve), :mod:`.recovery` (``RoomRecovery``:
+reflectance, its filters, the pixels' snapping), then :mod:`.alignment` (``RoomAlignment``:
+objects moved where the captures put them) and :mod:`.rendering` (``RoomRendering``: the room
+under other lights, virtual objects, removals). Beside them: :mod:`.io` (the room folder's
+files), :mod:`.item_buffer` (patches, rasters, footprints, fills), :mod:`.settings`,
+:mod:`.kernels` (numba), :mod:`.probes` (lamps placed from the probes' SG peaks).
 """

@@ -4,92 +4,20 @@ per lamp), the patch-to-patch form factors and the radiosity solve of the indire
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
 from lightprobe.hostlink.relight.room.io import Light
 from lightprobe.hostlink.relight.room.item_buffer import mat_vec
+from lightprobe.hostlink.relight.room.model import RoomModel
 
-__all__ = ["RadiosityMixin"]
+__all__ = ["RoomRadiosity"]
 
 
-class RadiosityMixin:
-    """The direct and indirect light of :class:`.room.Room` (its patches, lamps and caches)."""
+class RoomRadiosity(RoomModel):
+    """The room's model with its indirect light: form factors and the radiosity solve (a step of
+    :class:`.room.Room`)."""
 
-    def _irradiance(self, L: Light, P: np.ndarray, N: np.ndarray, es: Any = None) -> np.ndarray:
-        """Irradiance per watt at points ``P`` with normals ``N``: a uniformly emitting sphere's
-        field is its centre's, ``1 / (4 pi d^2)`` at distance d; the cosine and the visibility
-        averaged over the points of the cap facing the receiver (of ``light_samples`` x 2
-        Fibonacci points on the sphere), one shadow ray each (adaptively: the rest only where the
-        first quarter disagree), so a sphere partly below a receiver's horizon or partly hidden
-        lights it partly."""
-        from lightprobe.hostlink.relight.room.kernels import sphere_light_rays
-
-        m = self.light_samples
-        k = np.arange(2 * m) + 0.5
-        z = 1 - 2 * k / (2 * m)
-        ph = k * math.pi * (3 - math.sqrt(5))
-        u = np.stack([np.sqrt(1 - z * z) * np.cos(ph), z, np.sqrt(1 - z * z) * np.sin(ph)], 1)
-        c = np.asarray(L.position, np.float64)
-        S = c + L.radius * u
-        P = np.ascontiguousarray(P, np.float64)
-        N = np.ascontiguousarray(N, np.float64)
-        dc = np.linalg.norm(c - P, axis=1)
-        # adaptive (the paper's adaptive rays to an area light): every 4th point first; a receiver
-        # whose first rays all agree (wholly lit or wholly hidden) takes that answer for the rest
-        stages = (np.flatnonzero(np.arange(len(u)) % 4 == 0), np.flatnonzero(np.arange(len(u)) % 4 != 0))
-        out = np.zeros(len(P))
-        for s0 in range(0, len(P), 32768):
-            Pc, Nc = P[s0:s0 + 32768], N[s0:s0 + 32768]
-            n = len(Pc)
-            free, cnt = np.zeros(n), np.zeros(n)
-            n_free, n_ray = np.zeros(n, np.int64), np.zeros(n, np.int64)
-            for stage, cols in enumerate(stages):
-                m_ = len(cols)
-                o, d, t = np.empty((n, m_, 3)), np.empty((n, m_, 3)), np.empty((n, m_))
-                cos, st = np.zeros((n, m_)), np.empty((n, m_), np.uint8)
-                sphere_light_rays(Pc, Nc, S, u, c, float(L.radius), float(self.eps), cols, o, d, t, cos, st)
-                ray = st == 1
-                occ = np.ones((n, m_), bool)
-                if stage == 1:
-                    uniform = (n_ray >= 2) & ((n_free == 0) | (n_free == n_ray))
-                    guess = ray & uniform[:, None]
-                    occ[guess] = np.broadcast_to((n_free == 0)[:, None], occ.shape)[guess]
-                    ray &= ~uniform[:, None]
-                ri, ki = np.nonzero(ray)
-                occ[ri, ki] = self._occluded(o[ri, ki], d[ri, ki], t[ri, ki], es)
-                if stage == 0:
-                    n_ray += ray.sum(axis=1)
-                    n_free += (ray & ~occ).sum(axis=1)
-                counted = st > 0
-                free += np.where(counted & ~occ, cos, 0.0).sum(axis=1)
-                cnt += counted.sum(axis=1)
-            out[s0:s0 + n] = np.where(cnt > 0, free / np.maximum(cnt, 1), 0.0)
-        # cosine per sample (a sphere across the horizon lights the receiver partly), distance
-        # to the centre (the sphere's field; distances to its surface points overstate it)
-        return out / (4 * math.pi * np.maximum(dc, 1e-12) ** 2)
-
-    def _occluded(self, o: np.ndarray, d: np.ndarray, tfar: np.ndarray, es: Any = None) -> np.ndarray:
-        """Occlusion of the segments ``o + t d``, ``t < tfar`` (two threads: Embree releases the GIL)."""
-        n = len(o)
-        if not n:
-            return np.zeros(0, bool)
-        scene = es or self._es
-        o32, d32 = np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32)
-        t32 = np.ascontiguousarray(np.maximum(tfar, 0), np.float32)
-
-        def part(a: int, b: int) -> np.ndarray:
-            return np.asarray(scene.run(o32[a:b], d32[a:b], dists=t32[a:b], query="OCCLUDED")) == 0
-
-        if n < 16384:
-            return part(0, n)
-        from concurrent.futures import ThreadPoolExecutor
-
-        h = n // 2
-        with ThreadPoolExecutor(2) as ex:
-            lo, hi = ex.submit(part, 0, h), ex.submit(part, h, n)
-            return np.concatenate([lo.result(), hi.result()])
 
     def form_factors(self) -> np.ndarray:
         """(P, P) form factors from each patch centre to every patch: the exact unoccluded polygon
@@ -169,7 +97,6 @@ class RadiosityMixin:
         idx[self.cover] = np.arange(len(self.X))
         return idx
 
-    # ---- recovery ------------------------------------------------------------------------------
     def _in_view_of_lights(self, lights: list[Light]) -> np.ndarray:
         """Pixels whose camera ray passes within a pixel and a half of a light sphere in front of
         the surface (its image, antialiased, covers neighbours too)."""

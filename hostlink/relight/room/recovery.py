@@ -10,14 +10,24 @@ import numpy as np
 
 from lightprobe.core.errors import InputError
 from lightprobe.core.sphere import luminance
-from lightprobe.hostlink.relight.room.item_buffer import normalised_fill
-from lightprobe.hostlink.relight.room.settings import DOUBT, INDIRECT, OUTLIER
+from lightprobe.hostlink.relight.room.item_buffer import misfit, normalised_fill
+from lightprobe.hostlink.relight.room.radiosity import RoomRadiosity
+from lightprobe.hostlink.relight.room.settings import (
+    DOUBT,
+    INDIRECT,
+    OUTLIER,
+    SNAP_CAP,
+    SNAP_GAIN,
+    SNAP_MIN,
+    SNAP_RADIUS,
+)
 
-__all__ = ["RecoveryMixin"]
+__all__ = ["RoomRecovery"]
 
 
-class RecoveryMixin:
-    """The reflectance recovery of :class:`.room.Room`."""
+class RoomRecovery(RoomRadiosity):
+    """The room's reflectance recovered from its captures, pixels snapped to the geometry that
+    explains them (a step of :class:`.room.Room`)."""
 
     def recover(self, *, filters: bool = True, passes: int = 3, indirect: str = "radiosity",
                 snap: bool = True) -> np.ndarray:
@@ -244,3 +254,66 @@ class RecoveryMixin:
         img = np.zeros((self.cam.height, self.cam.width, 3), np.float32)
         img[self.cover] = per_pixel
         return img
+
+    def _snap(self, B: list[np.ndarray], S: list[np.ndarray], U: list[np.ndarray]) -> np.ndarray:
+        """Which pixel's geometry shades each pixel: itself, unless the model is off there.
+
+        ``B``, ``S``, ``U``: per capture the measured radiance, the modelled irradiance (direct +
+        indirect) and the usable pixels. A pixel's captures under lamps at several positions say
+        which surface it shows: the measured radiance must be one reflectance times the
+        modelled irradiance in every capture. Its misfit with the best reflectance (relative,
+        squared) is taken for its own modelled irradiance and for each pixel's within
+        ``SNAP_RADIUS``; where its own exceeds ``SNAP_MIN`` and a neighbour's is under
+        ``SNAP_GAIN`` of it, the neighbour's geometry shades it, in the recovery and in every
+        edit. That fixes a silhouette or an edge the approximate model puts a pixel or two off
+        (the model shows the block where the photographs show the wall behind it)."""
+        H, W = self.cam.height, self.cam.width
+        n = len(self.X)
+        idx = self._pixel_index()
+        yy, xx = np.nonzero(self.cover)
+        Bl = np.stack([luminance(b) for b in B])
+        Sl = np.stack([luminance(x) for x in S])
+        Uw = np.stack(U).astype(np.float64)
+        b2 = (Uw * Bl * Bl).sum(axis=0)
+        best_e = np.full(n, np.inf)
+        best_j = np.arange(n)
+        own_e = np.full(n, np.inf)
+        for dy in range(-SNAP_RADIUS, SNAP_RADIUS + 1):
+            for dx in range(-SNAP_RADIUS, SNAP_RADIUS + 1):
+                y2, x2 = yy + dy, xx + dx
+                ok = (y2 >= 0) & (y2 < H) & (x2 >= 0) & (x2 < W)
+                j = np.full(n, -1)
+                j[ok] = idx[y2[ok], x2[ok]]
+                ok = j >= 0
+                Sj = Sl[:, np.maximum(j, 0)]
+                sbs = (Uw * Bl * Sj).sum(axis=0)
+                sss = (Uw * Sj * Sj).sum(axis=0)
+                e = np.where(ok, misfit(b2, sbs, sss, np.inf), np.inf)
+                if dy == 0 and dx == 0:
+                    own_e = e
+                better = e < best_e
+                best_e[better] = e[better]
+                best_j[better] = j[better]
+        switch = (own_e > SNAP_MIN) & (best_e < SNAP_GAIN * own_e)
+        self.snapped = int(switch.sum())
+        return np.where(switch, best_j, np.arange(n))
+
+    def _misfit_image(self, B: list[np.ndarray], Ei: list[np.ndarray], scored: np.ndarray) -> float:
+        """How badly this model explains the captures ``B`` (luminance images) with the indirect
+        light ``Ei`` (images) held: per pixel of ``scored``, the relative squared misfit of the
+        best reflectance over the captures (capped at ``SNAP_CAP``; a pixel the model no longer
+        covers counts the cap), summed."""
+        H, W = self.cam.height, self.cam.width
+        b2 = np.zeros((H, W))
+        sbs = np.zeros((H, W))
+        sss = np.zeros((H, W))
+        for (_name, _p, lights), b, ei in zip(self.captures, B, Ei, strict=True):
+            s = ei.copy()
+            s[self.cover] += luminance(np.sum([np.outer(self._geometry(L)[0], L.rgb) for L in lights], axis=0))
+            u = np.ones((H, W), bool)
+            u[self.cover] = ~self._in_view_of_lights(lights)
+            b2 += np.where(u, b * b, 0.0)
+            sbs += np.where(u, b * s, 0.0)
+            sss += np.where(u, s * s, 0.0)
+        e = np.where(self.cover, np.minimum(misfit(b2, sbs, sss, SNAP_CAP), SNAP_CAP), SNAP_CAP)
+        return float(e[scored].sum())

@@ -18,12 +18,14 @@ from lightprobe.hostlink.relight.room.item_buffer import (
     normalised_fill,
     raster_cv,
 )
+from lightprobe.hostlink.relight.room.recovery import RoomRecovery
 
-__all__ = ["RenderingMixin"]
+__all__ = ["RoomRendering"]
 
 
-class RenderingMixin:
-    """The relighting of :class:`.room.Room`."""
+class RoomRendering(RoomRecovery):
+    """The recovered room under other lights, with virtual objects and removals (a step of
+    :class:`.room.Room`)."""
 
     # ---- relighting ----------------------------------------------------------------------------
     def render(self, lights: list[Light], where: str | Path = "lights",

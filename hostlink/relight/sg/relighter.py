@@ -63,7 +63,7 @@ import numpy as np
 
 from lightprobe.core.errors import InputError
 from lightprobe.core.sg import SGLighting
-from lightprobe.hostlink.relight.scene import Camera, Scene, rotation_matrix, vertex_normals
+from lightprobe.hostlink.relight.scene import Camera
 from lightprobe.hostlink.relight.sg.kernels import (
     interpolate,
     scatter_pixels,
@@ -77,13 +77,13 @@ from lightprobe.hostlink.relight.sg.settings import (
     REFLECTION,
     ZONAL_SAMPLES,
 )
-from lightprobe.hostlink.relight.sg.tables import TableCache, Tables
-from lightprobe.hostlink.relight.sg.visibility import SceneObject, VisibilityMixin
+from lightprobe.hostlink.relight.sg.tables import Tables
+from lightprobe.hostlink.relight.sg.visibility import SGVisibility
 
-__all__ = ["SGRelighter",]
+__all__ = ["SGRelighter"]
 
 
-class SGRelighter(VisibilityMixin):
+class SGRelighter(SGVisibility):
     """SG relighting of a :class:`~lightprobe.hostlink.relight.scene.Scene`: no precompute.
 
     ``visibility``: ``"voxels"`` (voxel cone tracing, ``voxels`` cells along the scene's longest
@@ -92,52 +92,6 @@ class SGRelighter(VisibilityMixin):
     (rigid, relative to the loaded pose). Shading: :meth:`vertex_radiance`, :meth:`render`
     (per pixel)."""
 
-    def __init__(self, scene: Scene, *, visibility: str = "voxels", voxels: int = 128,
-                 cone_gain: float = 0.8, cone_start: float = 2.0, cone_lift: float = 1.5,
-                 cone_footprint: float = 0.2) -> None:
-        if visibility not in ("voxels", "rays"):
-            raise InputError(f"visibility must be 'voxels' or 'rays', got {visibility!r}", param="visibility")
-        if voxels < 8 or voxels > 1024 or voxels & (voxels - 1):
-            raise InputError(f"voxels must be a power of two in [8, 1024], got {voxels!r}", param="voxels")
-        self.scene, self.visibility, self.R = scene, visibility, int(voxels)
-        self.cone_gain, self.cone_start, self.cone_lift = cone_gain, cone_start, cone_lift
-        self.cone_footprint = cone_footprint
-        names = list(scene.materials)
-        for n in names:
-            if scene.materials[n].type not in ("lambert", "phong"):
-                raise InputError(f"material {n!r}: the SG method shades lambert and phong, not "
-                                 f"{scene.materials[n].type!r}", param="material")
-        self.mats = np.stack([scene.materials[n].row() for n in names])
-        exps = sorted({float(scene.materials[n].exponent) for n in names if scene.materials[n].type == "phong"})
-        self._gloss = exps or [1.0]
-        self.gloss_slot = np.array([self._gloss.index(float(scene.materials[n].exponent))
-                                    if scene.materials[n].type == "phong" else 0 for n in names], np.int64)
-        self.objects: list[SceneObject] = []
-        base = 0
-        for o in scene.objects:
-            self.objects.append(SceneObject(o.name, np.array(o.mesh.vertices, np.float64), np.asarray(o.mesh.faces, np.int64), base))
-            base += len(o.mesh.vertices)
-        self.faces = np.concatenate([ob.faces + ob.base for ob in self.objects])
-        self.matid = np.concatenate([np.full(len(ob.rest), names.index(o.material), np.int64)
-                                     for ob, o in zip(self.objects, scene.objects, strict=True)])
-        self.vertices = np.concatenate([ob.rest for ob in self.objects])
-        self._normals = np.concatenate([vertex_normals(o.mesh) for o in scene.objects])
-        self._cache = TableCache()
-        self._tables: Tables | None = None
-        self._peaks = (np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, ZONAL_SAMPLES)))
-        self.sg: SGLighting | None = None
-        self._dirty = set(range(len(self.objects)))
-        self._occ: list[np.ndarray | None] = [None] * len(self.objects)
-        self._pyr: tuple[np.ndarray, np.ndarray] | None = None
-        self._embree: Any = None
-        self._rect_cache: tuple[int, np.ndarray, frozenset[int], np.ndarray] | None = None
-        self._bound_cache: tuple[int, np.ndarray, np.ndarray] | None = None
-        self.owner = np.concatenate([np.full(len(ob.rest), k, np.int64) for k, ob in enumerate(self.objects)])
-        self._geometry = 0          # bumped by every deformation or move
-        self.vox, self.origin = 0.0, np.zeros(3)    # no grid yet (_fit_grid)
-        self._fit_grid()
-        self._frame: dict[str, Any] | None = None   # render()'s per-pixel cache
-        self._lighting = 0          # bumped by every set_sg
 
     # ---- lighting ----------------------------------------------------------------------------
     def set_equirect(self, img: np.ndarray) -> None:
@@ -190,69 +144,6 @@ class SGRelighter(VisibilityMixin):
     @staticmethod
     def _gloss_grid(e: float) -> int:
         return 17 if e <= 32 else 33 if e <= 128 else 65   # cube-face texels: ~5.3, 2.7, 1.4 deg
-
-    # ---- geometry ----------------------------------------------------------------------------
-    def _index(self, name: str) -> int:
-        for k, ob in enumerate(self.objects):
-            if ob.name == name:
-                return k
-        raise InputError(f"no object named {name!r} (objects: {', '.join(o.name for o in self.objects)})", param="object")
-
-    def set_vertices(self, name: str, vertices: np.ndarray) -> None:
-        """Deform object ``name``: its shape now (same vertex count and faces), posed by the
-        object's current :meth:`move`."""
-        k = self._index(name)
-        ob = self.objects[k]
-        v = np.asarray(vertices, np.float64)
-        if v.shape != ob.rest.shape or not np.isfinite(v).all():
-            raise InputError(f"object {name!r}: expected {ob.rest.shape} finite vertices, got {v.shape}",
-                             param="vertices")
-        ob.shape = v.copy()
-        self._place(k)
-
-    def _place(self, k: int) -> None:
-        from lightprobe.hostlink.relight.scene import Mesh
-
-        ob = self.objects[k]
-        shape = ob.rest if ob.shape is None else ob.shape
-        c = ob.rest.mean(axis=0)
-        v = (shape - c) @ ob.rotation.T + c + ob.translation
-        self.vertices[ob.base:ob.base + len(v)] = v
-        self._normals[ob.base:ob.base + len(v)] = vertex_normals(Mesh(v, ob.faces))
-        self._dirty.add(k)
-        ob.version += 1
-        self._geometry += 1
-
-    def set_frame(self, k: int) -> None:
-        """Every deforming object of the scene file (``"frames"``) takes its shape ``k``."""
-        deforming = [o for o in self.scene.objects if o.frames]
-        if not deforming:
-            raise InputError("no object of the scene lists 'frames'", param="frame")
-        for o in deforming:
-            if not 0 <= k < len(o.frames):
-                raise InputError(f"frame {k} out of range: object {o.name!r} has {len(o.frames)} frames", param="frame")
-            self.set_vertices(o.name, o.frames[k])
-
-    def move(self, name: str, translation: np.ndarray, rotation: np.ndarray | None = None) -> None:
-        """Pose object ``name`` rigidly: rotation (XYZ Euler degrees, or a 3x3 matrix) about its
-        loaded centroid, then ``translation``, both relative to the loaded pose; its shape
-        (:meth:`set_vertices`, :meth:`set_frame`) is kept."""
-        k = self._index(name)
-        ob = self.objects[k]
-        r = np.asarray(rotation if rotation is not None else np.zeros(3), np.float64)
-        R = rotation_matrix(r) if r.shape == (3,) else r
-        t = np.asarray(translation, np.float64)
-        if R.shape != (3, 3) or t.shape != (3,) or not (np.isfinite(R).all() and np.isfinite(t).all()):
-            raise InputError(f"object {name!r}: a move needs a finite translation (3,) and rotation (3,) or (3, 3)",
-                             param="move")
-        ob.rotation, ob.translation = R, t
-        self._place(k)
-
-    def positions(self) -> np.ndarray:
-        return self.vertices
-
-    def normals(self) -> np.ndarray:
-        return self._normals
 
 
     # ---- shading -----------------------------------------------------------------------------

@@ -5,7 +5,6 @@ with rays."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,6 +17,7 @@ from lightprobe.hostlink.relight.sg.kernels import (
     trace_cones,
     voxelize,
 )
+from lightprobe.hostlink.relight.sg.objects import SGScene
 from lightprobe.hostlink.relight.sg.settings import (
     CONE_HALF,
     DIFFUSE_CONES,
@@ -39,59 +39,13 @@ from lightprobe.hostlink.relight.sg.tables import (
     table_lookup,
 )
 
-__all__ = ["SceneObject", "VisibilityMixin"]
+__all__ = ["SGVisibility"]
 
 
-# ---- scene state -------------------------------------------------------------------------------
-@dataclass
-class SceneObject:
-    name: str
-    rest: np.ndarray        # (V, 3) vertices as loaded
-    faces: np.ndarray       # (F, 3) local indices
-    base: int               # first global vertex index
-    shape: np.ndarray | None = None                 # the current shape (set_vertices), unposed
-    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))   # the pose (move)
-    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    version: int = 0        # bumped whenever its vertices change (_place)
-    # its plane (n, c) and rectangle row (rect_clear's 17 numbers), of ``version`` (_shape)
-    shape_info: tuple[int, tuple[np.ndarray, float] | None, np.ndarray | None] | None = None
-    # its bounding box (lo, hi) and sphere (centre, radius), of ``version`` (_object_bounds)
-    bound_info: tuple[int, np.ndarray, np.ndarray, np.ndarray, float] | None = None
+class SGVisibility(SGScene):
+    """The scene\'s visibility: cones through the voxels and the rectangles, or rays; the peaks\'
+    shadow rays (a step of :class:`.relighter.SGRelighter`)."""
 
-
-class VisibilityMixin:
-    """The visibility of :class:`.relighter.SGRelighter` (its objects, grid and lighting)."""
-
-    # ---- visibility --------------------------------------------------------------------------
-    def _object_bounds(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Object ``k``'s bounding box (lo, hi) and sphere (centre, radius), computed again only
-        when its vertices changed."""
-        ob = self.objects[k]
-        if ob.bound_info is None or ob.bound_info[0] != ob.version:
-            v = self.vertices[ob.base:ob.base + len(ob.rest)]
-            lo, hi = v.min(axis=0), v.max(axis=0)
-            ck = (lo + hi) / 2
-            ob.bound_info = (ob.version, lo, hi, ck, float(np.linalg.norm(v - ck, axis=1).max()))
-        return ob.bound_info[1], ob.bound_info[2], ob.bound_info[3], ob.bound_info[4]
-
-    def _voxel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds of the objects the voxels hold (all but the rectangles; all if none)."""
-        rect = self._rects()[1]
-        keep = [k for k in range(len(self.objects)) if k not in rect] or list(range(len(self.objects)))
-        boxes = [self._object_bounds(k) for k in keep]
-        return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
-
-    def _fit_grid(self) -> None:
-        """Fit the voxel grid to the voxelised objects (1.25 x their longest side, so a floor's
-        extent does not coarsen the voxels of what stands on it); refitted, and everything
-        re-voxelised, when one leaves it."""
-        lo, hi = self._voxel_bounds()
-        if self.vox > 0 and np.all(lo >= self.origin) and np.all(hi <= self.origin + self.vox * self.R):
-            return
-        c, side = (lo + hi) / 2, float((hi - lo).max()) * 1.25 + 1e-9
-        self.vox = side / self.R
-        self.origin = c - side / 2
-        self._dirty = set(range(len(self.objects)))
 
     def _pyramid(self) -> tuple[np.ndarray, np.ndarray]:
         R = self.R
@@ -261,72 +215,6 @@ class VisibilityMixin:
             scenes[skip] = build_embree(meshes) if meshes else None
         return scenes[skip]
 
-    def _shape(self, k: int) -> tuple[tuple[np.ndarray, float] | None, np.ndarray | None]:
-        """Object ``k``'s plane ``(n, c)`` (``n . x = c``) if all its vertices lie on one (to 1e-6
-        of its size: a mesh file's six decimals still make a plane), and, if that plane's mesh is
-        a rectangle, its row for :func:`~lightprobe.hostlink.relight.sg.kernels.rect_clear` (normal, offset,
-        corner origin, two in-plane unit axes, extents): a planar mesh is a rectangle when its area
-        is that of its bounding rectangle in its plane (along one of its triangles' edges) to
-        1e-5. Computed again only when the object changed (a deforming cow does not recount the
-        floor's 34k triangles every frame)."""
-        ob = self.objects[k]
-        if ob.shape_info is not None and ob.shape_info[0] == ob.version:
-            return ob.shape_info[1], ob.shape_info[2]
-        v = self.vertices[ob.base:ob.base + len(ob.rest)]
-        tri = v[ob.faces]
-        cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        n = cr.sum(axis=0)
-        ln = float(np.linalg.norm(n))
-        ext = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
-        plane, row = None, None
-        if ln > 0 and ext > 0:
-            n = n / ln
-            c = float(v[0] @ n)
-            if float(np.abs(v @ n - c).max()) <= 1e-6 * ext:
-                plane = (n, c)
-                row = self._rect_row(v, ob.faces, n, c, 0.5 * float(np.linalg.norm(cr, axis=1).sum()))
-        ob.shape_info = (ob.version, plane, row)
-        return plane, row
-
-    @staticmethod
-    def _rect_row(v: np.ndarray, faces: np.ndarray, n: np.ndarray, c: float, area: float) -> np.ndarray | None:
-        """The rectangle row of a planar mesh (see :meth:`_shape`), or None if it is no rectangle."""
-        o = v.mean(axis=0)
-        a1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
-        a1 /= np.linalg.norm(a1)
-        xy = (v - o) @ np.stack([a1, np.cross(n, a1)], axis=1)
-        # a rectangle's sides lie along some of its triangles' edges: try each edge direction
-        ed = xy[faces[:, [1, 2, 0]]] - xy[faces]
-        ang = np.unique(np.round(np.arctan2(ed[..., 1], ed[..., 0]).ravel() % (math.pi / 2), 9))
-        rot = np.stack([np.cos(ang), np.sin(ang)], axis=1)          # candidate e1 per angle
-        pu = xy @ rot.T
-        pv = xy @ np.stack([-rot[:, 1], rot[:, 0]], axis=1).T
-        boxes = np.ptp(pu, axis=0) * np.ptp(pv, axis=0)
-        best = int(np.argmin(boxes))
-        box = float(boxes[best])
-        if box <= 0 or abs(area - box) > 1e-5 * box:
-            return None
-        c1, s1 = rot[best]
-        e1 = c1 * a1 + s1 * np.cross(n, a1)
-        e2 = np.cross(n, e1)
-        uv = (v - o) @ np.stack([e1, e2], axis=1)
-        lo, hi = uv.min(axis=0), uv.max(axis=0)
-        return np.concatenate([n, [c], o, e1, e2, [lo[0], hi[0], lo[1], hi[1]]])
-
-    def _planes(self) -> list[tuple[np.ndarray, float] | None]:
-        """Per object, its plane ``(n, c)`` or None (:meth:`_shape`)."""
-        return [self._shape(k)[0] for k in range(len(self.objects))]
-
-    def _rects(self) -> tuple[np.ndarray, frozenset[int], np.ndarray]:
-        """The planar objects that are rectangles (a floor, a wall, a table top): (Q, 17) rows for
-        :func:`~lightprobe.hostlink.relight.sg.kernels.rect_clear`, their object indices as a set and as an
-        array. They occlude the cones exactly, not as voxels: a one-voxel floor sampled by a wide
-        cone lets 20-30% through (BENCHMARKS.md); other planar meshes stay voxels."""
-        if self._rect_cache is None or self._rect_cache[0] != self._geometry:
-            found = [(k, row) for k in range(len(self.objects)) if (row := self._shape(k)[1]) is not None]
-            self._rect_cache = (self._geometry, np.array([r for _, r in found], np.float64).reshape(-1, 17),
-                                frozenset(k for k, _ in found), np.array([k for k, _ in found], np.int64))
-        return self._rect_cache[1], self._rect_cache[2], self._rect_cache[3]
 
     def _occluders(self, origins: np.ndarray, dirs: np.ndarray) -> Any:
         """The Embree scene for rays from ``origins`` along any of ``dirs``, without the planar
