@@ -25,6 +25,8 @@ BENCHMARKS = {
     "formats": "host formats: SH + primary light irradiance error and time, GGX cube map time and error",
     "live": "live rate: light sets per sensor and wall second, change latency, error at that rate, "
             "CPU per frame, start times, RSS",
+    "stability": "a static scene's published energy over 3,600 sensor frames from a cold start: first sets, "
+                 "settling, frame-to-frame change, excursion, creep, direction jitter",
 }
 
 
@@ -47,12 +49,13 @@ def main(argv: list[str] | None = None) -> int:
         room,
         samplers,
         service,
+        stability,
     )
     from lightprobe.bench.machine import machine_info
 
     runners = {"pipeline": pipeline, "hdr": hdr, "samplers": samplers, "service": service, "relight": relight,
                "relight_sg": relight_sg, "room": room, "fleet": fleet, "cluster": cluster, "formats": formats,
-               "live": live}
+               "live": live, "stability": stability}
     result = runners[a.name].run(a.out, quick=a.quick)
     print(json.dumps({"machine": machine_info(), **result.get("summary", {})}, indent=2))
     return 0

@@ -29,7 +29,10 @@ class LightSet:
     ``directions`` (N, 3) unit float64; ``rgb`` (N, 3) float64 (unit x sr); ``solid_angle`` (N,)
     sr of the region each light stands for; ``ids`` (N,) int64 stable across frames where the
     method gives temporal correspondence, else -1. ``extra`` holds method-specific additions
-    published as optional fields (e.g. ``"peaks"``, ``"ambient"``).
+    published as optional fields (e.g. ``"peaks"``, ``"ambient"``). ``stale``: the camera is
+    away, these are the last good lights; ``settling``: the probe is starting and its estimate
+    is still taking in its first exposures, so the lighting may be off by more than its noise
+    (only the first frames after start: a metering sweep, a fraction of a second).
     """
 
     directions: np.ndarray
@@ -42,6 +45,7 @@ class LightSet:
     frame: int = 0
     timestamp: float = field(default_factory=time.time)
     stale: bool = False
+    settling: bool = False
     pose: dict[str, Any] = field(
         default_factory=lambda: {"rotation": np.eye(3).tolist(), "position": [0.0, 0.0, 0.0]}
     )
@@ -87,6 +91,7 @@ class LightSet:
             "method": self.method,
             "unit": self.unit,
             "stale": bool(self.stale),
+            "settling": bool(self.settling),
             "pose": self.pose,
             "lights": lights,
         }
@@ -108,9 +113,10 @@ class LightSet:
             ids = np.array([li.get("id", -1) for li in lights], np.int64)
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"malformed light in light set: {e}", param="lights") from e
-        known = {"version", "probe", "frame", "timestamp", "method", "unit", "stale", "pose", "lights"}
+        known = {"version", "probe", "frame", "timestamp", "method", "unit", "stale", "settling", "pose", "lights"}
         return cls(dirs, rgb, sa, ids, method=str(d.get("method", "")), unit=str(d.get("unit", "relative")),
                    probe=str(d.get("probe", "")), frame=int(d.get("frame", 0)),
                    timestamp=float(d.get("timestamp", 0.0)), stale=bool(d.get("stale", False)),
+                   settling=bool(d.get("settling", False)),
                    pose=d.get("pose") or {"rotation": np.eye(3).tolist(), "position": [0.0, 0.0, 0.0]},
                    extra={k: v for k, v in d.items() if k not in known})

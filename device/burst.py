@@ -53,6 +53,7 @@ __all__ = [
     "capture_burst",
     "exposure_rates",
     "field_of_view_mask",
+    "frame_peak_rate",
     "order_exposures",
     "rates_from_frame",
 ]
@@ -66,6 +67,56 @@ def exposure_rates(radiance: np.ndarray, full_scale: float | np.ndarray = 1.0) -
     fs = np.maximum(np.asarray(full_scale, dtype=np.float64), 1e-300)
     s = (r / fs).max(axis=-1) if r.ndim == 3 else r / fs
     return np.where(np.isfinite(s), np.maximum(s, 0.0), 0.0)
+
+
+def frame_peak_rate(codes: np.ndarray, lut: np.ndarray, full_scale: float, *, max_isolation: float = 16.0,
+                    candidates: int = 16) -> tuple[float, bool]:
+    """The brightest exposure rate (1/s) a frame's *sensor pixels* show, hot pixels aside, and
+    whether that pixel is saturated (the rate then a lower bound).
+
+    ``codes``: (H, W, 3) integer codes of one frame; ``lut[z, c]``: the frame's fusion LUT (value
+    per unit exposure, saturation flag; :func:`lightprobe.device.hdr.fusion.packed_lut`). Of the
+    ``candidates`` brightest pixels (by their brightest channel), the first that is clipped or
+    not an isolated outlier (a neighbour at least 1/``max_isolation`` as bright: a glint or a
+    hot pixel below full scale has none, a sun's or a lamp's optics spread it) gives its largest
+    channel value over ``full_scale``. A clipped pixel counts alone too: one frame cannot tell a
+    sun beyond the sensor's range from a stuck pixel, and the shorter exposure costs an
+    exposure where a clipped sun costs its light. (0, False) when every candidate is isolated.
+
+    The planner's map rates are output pixels, each the mean of the sensor pixels it covers, so
+    a sun smaller than an output pixel reads several times dimmer there than on the sensor
+    pixels that saturate: planned from the map alone, the shortest exposure drifts long enough
+    to clip it, the clipped pixel flags its output pixel saturated, and the plan swings back."""
+    c3 = np.asarray(codes)
+    w = c3.shape[1]
+    levels = lut.shape[0]
+    # the candidates: pixels at or above, in some channel, the code that many pixels reach
+    # (a histogram per channel and one comparison pass: no sort of the frame)
+    near = np.zeros(c3.shape[:2], bool)
+    for c in range(3):
+        ch = c3[..., c]
+        at_or_above = np.cumsum(np.bincount(ch.ravel().astype(np.intp, copy=False), minlength=levels)[::-1])
+        k = int(np.searchsorted(at_or_above, candidates))
+        near |= ch >= levels - 1 - min(k, levels - 1)
+    ys, xs = np.nonzero(near)
+    if ys.size == 0:
+        return 0.0, False
+    top = c3[ys, xs].max(axis=1)
+    order = np.argsort(top, kind="stable")[::-1][: 4 * candidates]
+    idx = ys[order] * w + xs[order]
+    value = lut[..., 0]
+    for i in idx:
+        y, x = divmod(int(i), w)
+        patch = c3[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].astype(np.intp)
+        lin = np.stack([value[patch[..., c], c] for c in range(3)], axis=-1).max(axis=-1)  # (ph, pw)
+        cy, cx = y - max(y - 1, 0), x - max(x - 1, 0)
+        v = float(lin[cy, cx])
+        others = np.delete(lin.ravel(), cy * lin.shape[1] + cx)
+        saturated = any(bool(lut[c3[y, x, c], c, 3] > 0) for c in range(3))
+        if v <= 0 or (not saturated and (others.size == 0 or float(others.max()) * max_isolation < v)):
+            continue  # dark, or an isolated outlier (a hot pixel's glint)
+        return v / max(full_scale, 1e-300), saturated
+    return 0.0, False
 
 
 def rates_from_frame(frame: Frame, response: Response | None = None,
@@ -123,6 +174,9 @@ class BracketPlanner:
     max_isolation: float = 16.0
     dark_percentile: float = 2.0
     saturated_headroom: float = 8.0
+    # the sensor pixels' peak (frame_peak_rate) is planned with this much more headroom: a small
+    # light's brightest pixel varies with where it falls between pixels (a moving sun's by ~1.5x)
+    sensor_peak_margin: float = 2.0
     sweep_ev: float = 4.0
     # What the bracket is for (module docstring): "pixels" (every pixel above the noise floor,
     # an HDR photograph) or "lighting" (the light the scene sends, energy-weighted)

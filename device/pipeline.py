@@ -9,8 +9,10 @@ published. A light set per sensor frame; nothing at full sensor resolution that 
 
 The schedule (the exposures and gains the camera cycles through) is planned *for the lighting*
 (:class:`lightprobe.device.burst.BracketPlanner`, ``target="lighting"``): the shortest exposure keeps the
-brightest thing in view unsaturated (with headroom for what the scene showed in the last few
-seconds, a lamp that switches), the longest is only as long as the light the scene sends needs
+brightest thing in view unsaturated, read from the sensor's own pixels in the shortest exposure
+(a sun smaller than an output pixel is brighter there than in the map) with a margin and with
+hysteresis (headroom too for what the scene showed in the last few seconds, a lamp that
+switches), the longest is only as long as the light the scene sends needs
 (its darkest corners, which carry less than ``dark_energy`` of the light, may stay noisy),
 exposures beyond the sensor's frame time take gain first, and every exposure lies on the
 camera's own grid (V4L2/UVC 100 us units, libcamera microseconds) so it lands and verifies. The
@@ -56,7 +58,7 @@ import numpy as np
 from lightprobe.core.calibration import Calibration
 from lightprobe.core.errors import InputError
 from lightprobe.core.sphere import luminance
-from lightprobe.device.burst import ExposureSchedule, keep_in_use
+from lightprobe.device.burst import ExposureSchedule, frame_peak_rate, keep_in_use
 from lightprobe.device.sampling.change import ChangeTest
 from lightprobe.drivers.base import Camera, Controls, Frame
 
@@ -72,6 +74,8 @@ HISTOGRAM_EDGES_LOG2 = np.linspace(-16.0, 24.0, 65)
 PREVIEW_WIDTH = 320  # the dashboard's previews are at most this many pixels wide
 _REPLAN_S = 1.0  # replan the schedule at least this often (sensor seconds)
 _MEMORY_S = 10.0  # the shortest exposure keeps headroom for what was brightest this long ago
+_PEAK_DROP = 2.0  # ... and is lengthened only when that fell below the planned peak by this factor,
+_PEAK_RISE = 1.5  # ... shortened when it rose above it by this one
 RELEASE_AFTER_FRAMES = 150  # frames after which the start's memory is handed back (5 s at 30 fps)
 
 
@@ -201,6 +205,8 @@ class Pipeline:
         self._extra_lights = 0
         self._planned_at = -math.inf  # sensor time of the last plan
         self._bright: list[tuple[float, float]] = []  # (sensor time, brightest rate) history
+        self._peaks: list[tuple[float, bool]] = []  # the sensor pixels' peak rates since the last plan
+        self._planned_peak = 0.0  # the peak rate the bracket in use is planned for
         self._preview: tuple[Frame, np.ndarray] | None = None
         self._t_last: float | None = None
 
@@ -469,16 +475,19 @@ class Pipeline:
         coarse = geo.coarse_energy(lum_w)
         self._change.observe(merge.changed, merge.held)
         skipped = self._unchanged(coarse, fused)
+        # the first metering sweep: the estimate is still taking in its first exposures
+        settling = self._schedule is not None and self._schedule.sweep
         if skipped:
-            lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False)  # type: ignore[union-attr]
+            lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False,  # type: ignore[union-attr]
+                             settling=settling)
         else:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
-            lights.frame, lights.timestamp = self._frame, now
+            lights.frame, lights.timestamp, lights.settling = self._frame, now, settling
             self._change.sampled(coarse, lum_w, merge.held)
         t3 = time.perf_counter()
         if self._is_preview_exposure(exposure, gain):
             self._preview = (frame, lut)
-        self._advance_schedule(fused, sensor_t, (exposure, gain))
+        self._advance_schedule(fused, sensor_t, (exposure, gain), codes.reshape(np.shape(frame.data)), lut)
         sched = self._schedule
         assert sched is not None
         bounded = float(merge.bounded.mean())
@@ -499,11 +508,18 @@ class Pipeline:
         mid = sched.controls[len(sched.controls) // 2]
         return (exposure, gain) == mid or self._preview is None
 
-    def _advance_schedule(self, fused: np.ndarray, sensor_t: float, key: tuple[float, float]) -> None:
+    def _advance_schedule(self, fused: np.ndarray, sensor_t: float, key: tuple[float, float],
+                          codes: np.ndarray, lut: np.ndarray) -> None:
         """Replan from the fused map when a cycle is done (or a second passed): the planner's
-        rates are the map's radiance per unit exposure at each output pixel."""
+        rates are the map's radiance per unit exposure at each output pixel; its peak is also
+        the sensor pixels' of the frame just taken, the shortest exposure
+        (:func:`lightprobe.device.burst.frame_peak_rate`: a sun smaller than an output pixel
+        saturates sensor pixels the map's mean does not show)."""
         sched = self._schedule
         assert sched is not None
+        if sched.sweep:  # the sensor pixels' peak of each frame of a metering sweep
+            self._peaks.append(frame_peak_rate(codes, lut, self._geo.full_scale,
+                                               max_isolation=self._planner.max_isolation))
         if not sched.cycle_done and sensor_t - self._planned_at < _REPLAN_S:
             return
         if not sched.cycle_done and sched.sweep:
@@ -512,15 +528,25 @@ class Pipeline:
             return  # plan right after the shortest exposure: what no exposure measures is saturated
                     # in it too (a lamp's edge a long frame saw move is not)
         geo, merge = self._geo, self._merge
+        if not sched.sweep:  # the sensor pixels' peak of this frame, the shortest exposure
+            self._peaks.append(frame_peak_rate(codes, lut, geo.full_scale, max_isolation=self._planner.max_isolation))
         shape = (geo.height // 2, 2 * geo.height)
         rates = (np.maximum(fused, 0.0).max(axis=1) * geo.inv_gain_out / geo.full_scale).reshape(shape)
         saturated = merge.bounded.reshape(shape).copy()
         weights = geo.solid_angle_out.reshape(shape)
         # keep headroom for the brightest the scene showed lately (a lamp that switches)
         levels = self._planner.scene_levels(rates, saturated=saturated, weights=weights)
+        peak = self._sensor_peak(sched.sweep)
         self._bright = [(t, s) for t, s in self._bright if sensor_t - t <= _MEMORY_S]
-        self._bright.append((sensor_t, levels[1] if levels else 0.0))
+        self._bright.append((sensor_t, max(levels[1] if levels else 0.0, peak)))
         recent = max(s for _, s in self._bright)
+        # hysteresis on the peak the bracket is planned for (with the sensor peak's margin): kept
+        # while the peak stays within [1 / _PEAK_DROP, _PEAK_RISE] of it, so a peak's scatter (a
+        # sun between pixels) re-times no exposure; beyond, replanned at once (well before a
+        # clip: the planned peak sits at the bright target with sensor_peak_margin to spare)
+        if not sched.sweep and self._planned_peak / _PEAK_DROP <= recent <= self._planned_peak * _PEAK_RISE:
+            recent = self._planned_peak
+        self._planned_peak = recent
         controls = self._planner.controls(rates, saturated=saturated, weights=weights, min_peak=recent)
         if not sched.sweep:  # hysteresis: an exposure within ~15% of one in use stays as it is
             controls = keep_in_use(controls, sched.controls)
@@ -528,6 +554,21 @@ class Pipeline:
         merge.forget(keep, older_than=self._frame - 2 * len(controls))
         self._schedule = ExposureSchedule(controls, hold=self._hold())
         self._planned_at = sensor_t
+
+    def _sensor_peak(self, sweep: bool) -> float:
+        """The peak rate the sensor pixels showed for this plan: the shortest exposure's just
+        taken, or of a sweep's frames the brightest that was not saturated (a saturated
+        pixel's rate is a lower bound: ``saturated_headroom`` x it when nothing better was seen)."""
+        peaks, self._peaks = self._peaks, []
+        if not peaks:
+            return 0.0
+        planner = self._planner
+        if not sweep:
+            rate, saturated = peaks[-1]
+            return rate * (planner.saturated_headroom if saturated else planner.sensor_peak_margin)
+        measured = [r for r, sat in peaks if not sat]
+        return (max(measured) * planner.sensor_peak_margin if measured
+                else max(r for r, _ in peaks) * planner.saturated_headroom)
 
     def _unchanged(self, coarse: np.ndarray, fused: np.ndarray) -> bool:
         if self.latest is None:

@@ -275,3 +275,34 @@ async def test_simulator_read_ahead_gives_the_same_frames() -> None:
     for a, b in zip(*out, strict=True):
         assert (a.meta.sequence, a.meta.exposure_s, a.meta.gain) == (b.meta.sequence, b.meta.exposure_s, b.meta.gain)
         np.testing.assert_array_equal(a.data, b.data)
+
+
+def test_the_sensor_peak_is_the_brightest_pixel_that_is_not_isolated() -> None:
+    """frame_peak_rate: a sun of two sensor pixels is read at its brightest pixel (the planner's
+    map averages it into an output pixel), a lone bright pixel among dark ones (a hot pixel, a
+    glint) is passed over, and a clipped peak says it is a lower bound, alone or not (one frame
+    cannot tell a sun beyond the sensor's range from a stuck pixel: the shorter exposure costs an
+    exposure, a clipped sun its light)."""
+    from lightprobe.device.burst import frame_peak_rate
+
+    levels = 256
+    lut = np.zeros((levels, 3, 5), np.float32)
+    lut[..., 0] = (np.arange(levels, dtype=np.float32) / 255.0)[:, None] * 1000.0  # value per unit exposure
+    lut[250:, :, 3] = 1.0  # saturated codes
+    codes = np.full((48, 64, 3), 5, np.uint8)  # a dark room
+    codes[10, 10] = 200  # the sun's brightest pixel ...
+    codes[10, 11] = 120  # ... and its neighbour
+    codes[40, 50] = 240  # a lone bright pixel among dark ones
+    rate, saturated = frame_peak_rate(codes, lut, full_scale=1000.0)
+    assert rate == pytest.approx(200 / 255)
+    assert saturated is False
+    codes[10, 10] = 252
+    rate, saturated = frame_peak_rate(codes, lut, full_scale=1000.0)
+    assert rate == pytest.approx(252 / 255)
+    assert saturated is True
+    # only isolated pixels, none clipped: no peak (the map's own levels decide)
+    lone = np.zeros((16, 16, 3), np.uint8)
+    lone[5, 5] = 240
+    assert frame_peak_rate(lone, lut, full_scale=1000.0) == (0.0, False)
+    lone[5, 5] = 255  # clipped: a lower bound, alone or not
+    assert frame_peak_rate(lone, lut, full_scale=1000.0) == (pytest.approx(1.0), True)

@@ -342,6 +342,7 @@ class Runner:
             "health": health,
             "camera": {"state": self.camera_state, "error": self.last_error, "reconnects": self.reconnects},
             "stale": self.stale,
+            "settling": bool(getattr(self.lights, "settling", False)),
             "frame": int(getattr(r, "frame", 0)) if r is not None else None,
             "frames": self.frames,
             "frames_skipped": self.frames_skipped,
