@@ -401,16 +401,3 @@ class CubemapFilter:
         out = np.empty((len(idx), 3))
         _gather(np.ascontiguousarray(a, np.float32).reshape(-1, 3), idx, wts, True, out)
         return out.reshape(6, self.size, self.size, 3).astype(np.float32)
-
-    def brute_force(self, equirect: np.ndarray, mip: int, dirs: np.ndarray) -> np.ndarray:
-        """The reference: the filter integral over every pixel of the map at ``dirs`` (k, 3)."""
-        from lightprobe.core.sphere import equirect_directions
-
-        a = np.where(np.isfinite(equirect) & (equirect > 0), equirect, 0).astype(np.float64)
-        h = a.shape[0]
-        d = equirect_directions(h).reshape(-1, 3)
-        pw = a.reshape(-1, 3) * np.repeat(equirect_row_solid_angle(h), 2 * h)[:, None]
-        if mip == 0:
-            return sample_equirect(a, dirs)
-        wts = ggx_weight(np.asarray(dirs) @ d.T, self._alpha[mip])
-        return wts @ pw / self._norm[mip]
