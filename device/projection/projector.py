@@ -84,8 +84,8 @@ class Projector:
         restart loads them instead of rebuilding (``lightprobe.device.projection.diskcache``).
     maps : the tables to build (a subset of polar, equirect, healpix; the live pipeline needs
         only the equirect one, a third of the build).
-    balance : False builds a coarse table, without the exact solid-angle balancing (a plain
-        area-weighted mean per output pixel, a few percent off per pixel; ~1 s less to build),
+    balance : False builds a coarse table, balanced briefly instead of exactly (a few percent
+        off per output pixel, the map's energy within ~0.1%; ~0.5 s less to build),
         never written to ``cache_dir``: the live pipeline's first lights on a fresh state dir,
         until the balanced table is built behind it.
     load_only : raise :class:`LookupError` instead of building when the tables are neither in
