@@ -36,7 +36,9 @@ import numpy as np
 
 __all__ = ["SCENES", "figures", "record", "run", "sun_map"]
 
-SCENES = ["lebombo", "rooitou_park", "studio_small_03", "potsdamer_platz", "dikhololo_night", "interior_blender"]
+# the shared maps (../shared/data/envmaps), then the synthetic suns
+SCENES = ["lebombo_1k.hdr", "rooitou_park_1k.hdr", "studio_small_03_1k.hdr", "potsdamer_platz_1k.hdr",
+          "dikhololo_night_1k.hdr", "interior_blender.exr"]
 SUNS = {"sun_1e5": 1e5, "sun_1e6": 1e6}
 FPS = 30.0
 
@@ -150,9 +152,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     frames = 420 if quick else 3600
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="lightprobe-stability-") as tmp:
-        scenes = [str(Path(SHARED) / "envmaps" / f) for f in (
-            "lebombo_1k.hdr", "rooitou_park_1k.hdr", "studio_small_03_1k.hdr", "potsdamer_platz_1k.hdr",
-            "dikhololo_night_1k.hdr", "interior_blender.exr")]
+        scenes = [str(Path(SHARED) / "envmaps" / f) for f in SCENES]
         scenes += [str(sun_map(Path(tmp) / f"{name}.exr", ratio)) for name, ratio in SUNS.items()]
         for scene in scenes:
             name = Path(scene).stem.removesuffix("_1k")
