@@ -7,6 +7,7 @@ Public API::
                                               # "swing", "daylight", or any equirect path
     from lightprobe.sim.scene import Scene, DynamicLight # radiance over the sphere, area-correct lights
     from lightprobe.sim.lens import make_lens            # KB4 fisheye, vignetting, housing ring, render matrix
+    from lightprobe.sim.optics import Kb4Lens, MOUNT     # its own lens, mounting and sphere conventions
     from lightprobe.sim.sensor import SensorModel        # shot/read noise, response curve, 8-bit / raw
     from lightprobe.sim.faults import FaultPlan          # camera.faults.inject("disconnect", duration_s=0.5)
 
@@ -18,6 +19,11 @@ Typical use::
         frame = await cam.capture()
     cal = cam.truth_calibration()             # fused value x cal.photometric.scale == radiance
     truth = cam.truth_radiance(frame.meta.timestamp_s)
+
+The simulator is its own implementation: its lens, vignetting, mounting and response are written
+from the documents (CONVENTIONS.md, NOTES.md), not imported from the probe, and its truth
+calibration is those models written in the calibration file's schema
+(``tests/test_sim_independence.py``).
 
 Importing this package does nothing (no files read, no threads).
 """

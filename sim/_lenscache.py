@@ -2,7 +2,7 @@
 
 Building one costs about a second at VGA (point-sampled overlaps and 12 balancing sweeps); it
 depends only on the lens parameters, the equirect height and the code that builds it, so the
-file name hashes all three (the source of :mod:`lightprobe.sim.lens` included: an edited lens model never
+file name hashes all three (the sources of :mod:`lightprobe.sim.lens` and :mod:`lightprobe.sim.optics` included: an edited lens model never
 reads an old matrix). Files are written atomically (temp file + rename); an unreadable one is
 rebuilt. Loading is exact: the cached CSR matrix is the one :meth:`render_matrix` returned.
 """
@@ -20,6 +20,7 @@ import numpy as np
 from lightprobe.sim._sparse import Csr
 
 from . import lens as _lens_module
+from . import optics as _optics_module
 from .lens import SimLens
 
 __all__ = ["load_render_matrix"]
@@ -29,7 +30,7 @@ _SUPERSAMPLE, _HOUSING = 4, True  # render_matrix's defaults, the ones SimCamera
 
 
 def _path(lens: SimLens, eq_height: int, cache_dir: str) -> Path:
-    src = Path(_lens_module.__file__).read_bytes()
+    src = Path(_lens_module.__file__).read_bytes() + Path(_optics_module.__file__).read_bytes()
     fe = lens.fisheye
     key = repr((hashlib.sha256(src).hexdigest(), fe.image_size, np.asarray(fe.K).tolist(),
                 np.asarray(fe.D).tolist(), fe.fov_deg, lens.vignetting, lens.circle_deg, lens.ring_deg,

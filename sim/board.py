@@ -1,7 +1,7 @@
 """Checkerboard views rendered through a known fisheye lens, for testing the calibration.
 
 Each sensor sub-pixel is unprojected to a camera ray with the true KB4 model
-(:meth:`lightprobe.core.calibration.FisheyeModel.unproject`), intersected with the board plane and shaded
+(:meth:`lightprobe.sim.optics.Kb4Lens.unproject`), intersected with the board plane and shaded
 by the checker pattern; ``supersample`` x ``supersample`` sub-pixels per pixel give
 anti-aliasing, then Gaussian noise and 8-bit quantisation. The rays are computed once per
 renderer, so a view costs one plane intersection per sub-pixel.
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from lightprobe.core.calibration import FisheyeModel
+from .optics import Kb4Lens
 
 if TYPE_CHECKING:
     from .lens import SimLens
@@ -51,7 +51,7 @@ def _board_grid(cols: int, rows: int, square: float) -> np.ndarray:
     return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=-1).astype(np.float64) * square
 
 
-def true_corners(model: FisheyeModel, pose: BoardPose, cols: int, rows: int, square: float) -> np.ndarray:
+def true_corners(model: Kb4Lens, pose: BoardPose, cols: int, rows: int, square: float) -> np.ndarray:
     """Exact pixel positions (N, 2) of the inner corners under the true lens."""
     pts = _board_grid(cols, rows, square) @ pose.R.T + pose.t
     return model.project(pts)
@@ -60,7 +60,7 @@ def true_corners(model: FisheyeModel, pose: BoardPose, cols: int, rows: int, squ
 class BoardRenderer:
     """Renders checkerboard views through ``model``; rays are precomputed (float32 to save memory)."""
 
-    def __init__(self, model: FisheyeModel, *, supersample: int = 3, background: float = 0.45,
+    def __init__(self, model: Kb4Lens, *, supersample: int = 3, background: float = 0.45,
                  max_theta_deg: float | None = None) -> None:
         self.model = model
         self.ss = int(supersample)
@@ -70,6 +70,7 @@ class BoardRenderer:
         xs = (np.arange(w)[:, None] + off[None, :]).ravel()
         px = np.stack(np.meshgrid(xs, ys), axis=-1)  # (h ss, w ss, 2)
         rays = model.unproject(px)
+        rays[~np.isfinite(rays).all(axis=-1)] = (0.0, 0.0, -1.0)  # beyond the lens model: invalid
         theta_max = np.radians(max_theta_deg if max_theta_deg is not None else model.fov_deg / 2)
         self.valid = np.arccos(np.clip(rays[..., 2], -1, 1)) <= theta_max
         self.rays = rays.astype(np.float32)

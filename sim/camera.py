@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from lightprobe.core.calibration import Calibration, LensMask, Photometric, Pose
+from lightprobe.core.calibration import Calibration
 from lightprobe.drivers.base import (
     BoardTarget,
     Camera,
@@ -437,15 +437,17 @@ class SimCamera(Camera):
         """
         m = mode or self._mode
         lens = self.lens_for(m)
-        return Calibration(
-            fisheye=lens.fisheye,
-            response=self.sensor.truth_response(m.format),
-            vignetting=lens.vignetting,
-            photometric=Photometric(self.sensor.photometric_scale, "relative"),
-            pose=Pose(),
-            source="truth",
-            mask=LensMask(lens.vignetting.center, lens.clean_radius_px),
-        )
+        # Written in the calibration file's schema (CONVENTIONS.md) from the simulator's own models
+        return Calibration.from_json({
+            "version": Calibration.VERSION,
+            "source": "truth",
+            "fisheye": lens.fisheye.calibration_section(),
+            "response": self.sensor.truth_response_section(m.format),
+            "vignetting": lens.vignetting.calibration_section(),
+            "photometric": {"scale": float(self.sensor.photometric_scale), "unit": "relative"},
+            "pose": {"rotation": np.eye(3).tolist(), "position": [0.0, 0.0, 0.0]},
+            "mask": {"center": [float(c) for c in lens.vignetting.center], "radius_px": float(lens.clean_radius_px)},
+        })
 
     def truth_radiance(self, t: float | None = None) -> np.ndarray:
         """Ground-truth equirect radiance at time ``t`` (default: the next frame's time)."""

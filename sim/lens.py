@@ -1,7 +1,7 @@
 """The simulated fisheye lens: KB4 geometry, vignetting, housing ring and the area-correct render.
 
-The lens is an OpenCV fisheye (Kannala-Brandt KB4, ``lightprobe.core.calibration.FisheyeModel``) looking
-up: camera directions go to the probe frame through ``lightprobe.core.sphere.CAMERA_TO_PROBE``. Its image
+The lens is an OpenCV fisheye (Kannala-Brandt KB4, the simulator's own :class:`~lightprobe.sim.optics.Kb4Lens`)
+looking up: camera directions go to the probe frame through :data:`lightprobe.sim.optics.MOUNT`. Its image
 circle spans ``circle_deg`` (187 deg) and fits the sensor height (radius 236 px of 480); the
 outermost ``ring_deg`` (1 deg of polar angle) is the dark housing ring (transmission
 ``ring_transmission`` = 3%), so the clean field of view, :attr:`SimLens.fov_deg`, is
@@ -40,14 +40,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lightprobe.core.calibration import FisheyeModel, Vignetting
-from lightprobe.core.sphere import CAMERA_TO_PROBE, equirect_row_solid_angle
 from lightprobe.sim._sparse import Csr
+
+from .optics import MOUNT, Kb4Lens, RadialFalloff, equirect_row_omega
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
 
-__all__ = ["DEFAULT_D", "SimLens", "make_lens", "standard_lens", "theta_d_prime"]
+__all__ = ["DEFAULT_D", "SimLens", "make_lens", "standard_lens"]
 
 # KB4 distortion of the simulated lens: mildly wider than equidistant towards the rim.
 DEFAULT_D = np.array([0.02, -0.008, 0.001, -0.0002])
@@ -58,12 +58,6 @@ _CHUNK_PIXELS = 65536
 # Vignetting V(r) = 1 + a1 r^2 + a2 r^4 + a3 r^6 with r = 1 at the circle edge: V(1) = 0.65.
 _VIGNETTING_COEFFS = (-0.25, -0.10, 0.0)
 
-
-def theta_d_prime(theta: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """Derivative of the KB4 distortion ``d theta_d / d theta`` (float64)."""
-    t2 = np.asarray(theta, dtype=np.float64) ** 2
-    k1, k2, k3, k4 = D
-    return 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
 
 
 @dataclass(frozen=True)
@@ -79,8 +73,8 @@ class SimLens:
     ring_transmission : fraction of light the ring lets through.
     """
 
-    fisheye: FisheyeModel
-    vignetting: Vignetting
+    fisheye: Kb4Lens
+    vignetting: RadialFalloff
     circle_deg: float = 187.0
     ring_deg: float = 1.0
     ring_transmission: float = 0.03
@@ -101,23 +95,18 @@ class SimLens:
     def circle_radius_px(self) -> float:
         """Radius of the image circle in pixels (x axis)."""
         th = np.deg2rad(self.circle_deg / 2)
-        return float(self.fisheye.K[0, 0] * self.fisheye.distort_theta(np.array(th)))
+        return float(self.fisheye.K[0, 0] * self.fisheye.theta_d(np.array(th)))
 
     @property
     def clean_radius_px(self) -> float:
         """Radius in pixels of the clean circle (inside the housing ring, ``fov_deg``)."""
         th = np.deg2rad(self.fov_deg / 2)
-        return float(self.fisheye.K[0, 0] * self.fisheye.distort_theta(np.array(th)))
+        return float(self.fisheye.K[0, 0] * self.fisheye.theta_d(np.array(th)))
 
     # -- geometry ---------------------------------------------------------------------------------
     def _theta_table(self) -> tuple[float, np.ndarray]:
         """Undistortion table on a uniform theta_d grid: (step, theta at k * step)."""
-        theta = np.linspace(0.0, np.deg2rad(self.circle_deg / 2 + 10.0), 100001)
-        theta_d = self.fisheye.distort_theta(theta)
-        if np.any(np.diff(theta_d) <= 0):  # pragma: no cover - guarded by the chosen D
-            raise ValueError("KB4 distortion is not monotone over the image circle")
-        grid = np.linspace(0.0, theta_d[-1], 50001)
-        return float(grid[1]), np.interp(grid, theta_d, theta)
+        return self.fisheye.theta_table(np.deg2rad(self.circle_deg / 2 + 10.0))
 
     def pixel_polar(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Polar angle from the optical axis, image azimuth (cos, sin) of pixel coords (float64).
@@ -125,9 +114,7 @@ class SimLens:
         KB4 is inverted by linear interpolation in a uniform theta_d table (error < 1e-8 rad).
         Points beyond the table (10 deg outside the image circle) get theta = +inf.
         """
-        K = self.fisheye.K
-        my = (v - K[1, 2]) / K[1, 1]
-        mx = (u - K[0, 2] - K[0, 1] * my) / K[0, 0]
+        mx, my = self.fisheye.normalised(u, v)
         rd = np.hypot(mx, my)
         step, table = self._theta_table()
         pos = rd / step
@@ -145,8 +132,8 @@ class SimLens:
         theta = np.asarray(theta, dtype=np.float64)
         fin = np.isfinite(theta)
         t = np.where(fin, theta, 0.0)
-        td = self.fisheye.distort_theta(t)
-        tdp = theta_d_prime(t, self.fisheye.D)
+        td = self.fisheye.theta_d(t)
+        tdp = self.fisheye.theta_d_prime(t)
         ratio = np.where(t > 1e-9, np.sin(t) / np.where(t > 1e-9, td, 1.0), 1.0)
         K = self.fisheye.K
         return np.where(fin, ratio / tdp / (K[0, 0] * K[1, 1]), 0.0)
@@ -190,7 +177,7 @@ class SimLens:
         theta, ca, sa = self.pixel_polar(u, v)
         st = np.sin(theta)
         cam = np.stack([st * ca, st * sa, np.cos(theta)], axis=-1)
-        return cam @ CAMERA_TO_PROBE.T
+        return cam @ MOUNT.T
 
     # -- the render matrix ------------------------------------------------------------------------
     def render_matrix(self, eq_height: int, *, supersample: int | None = None,
@@ -252,7 +239,7 @@ class SimLens:
         trans = self.transmission(theta) if housing else fin.astype(np.float64)
         omega_p = jac.sum(axis=1)
         t_p = (jac * trans).sum(axis=1) / np.where(omega_p > 0, omega_p, 1.0)
-        # Probe angles: CAMERA_TO_PROBE maps (x, y, z)_cam to (x, z, -y), so the probe's polar
+        # Probe angles: MOUNT maps (x, y, z)_cam to (x, z, -y), so the probe's polar
         # angle is the camera's and the azimuth atan2(x_p, -z_p) = atan2(cos a, sin a)
         th_p = np.where(fin, theta, 0.0)
         ph_p = np.mod(np.arctan2(ca, sa), 2 * np.pi)
@@ -271,7 +258,7 @@ class SimLens:
                  ) -> sp.csr_matrix:
         """Iterative proportional fitting of the overlap matrix to its exact marginals."""
         eq_w = 2 * eq_height
-        row_omega = equirect_row_solid_angle(eq_height)
+        row_omega = equirect_row_omega(eq_height)
         edge_bottom = np.pi * (np.arange(eq_height) + 1) / eq_height
         inside = edge_bottom <= np.deg2rad(self.circle_deg / 2)
         target = np.repeat(np.where(inside, row_omega, 0.0), eq_w)
@@ -312,11 +299,11 @@ def make_lens(width: int = 640, height: int = 480, *, D: np.ndarray | None = Non
     """
     D = DEFAULT_D.copy() if D is None else np.asarray(D, dtype=np.float64)
     radius = _VGA_CIRCLE_RADIUS_PX * height / 480.0
-    probe = FisheyeModel((width, height), np.eye(3), D)
-    f = radius / float(probe.distort_theta(np.array(np.deg2rad(circle_deg / 2))))
+    unit = Kb4Lens((width, height), np.eye(3), D)
+    f = radius / float(unit.theta_d(np.array(np.deg2rad(circle_deg / 2))))
     K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    fisheye = FisheyeModel((width, height), K, D, fov_deg=circle_deg - 2 * ring_deg)
-    vig = Vignetting(((width - 1) / 2, (height - 1) / 2), radius, _VIGNETTING_COEFFS)
+    fisheye = Kb4Lens((width, height), K, D, fov_deg=circle_deg - 2 * ring_deg)
+    vig = RadialFalloff(((width - 1) / 2, (height - 1) / 2), radius, _VIGNETTING_COEFFS)
     return SimLens(fisheye, vig, circle_deg=circle_deg, ring_deg=ring_deg)
 
 

@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from lightprobe.core.errors import InputError
-from lightprobe.core.sphere import directions_from_angles, equirect_directions
 
+from .optics import direction, equirect_centres
 from .scene import DynamicLight, Scene
 
 __all__ = ["SCENARIOS", "default_shared_data", "load_scene", "procedural_room"]
@@ -46,7 +46,7 @@ DEFAULT_BASE = "lebombo_1k.hdr"
 
 def _dir(theta: float, phi: float) -> np.ndarray:
     """Probe-frame unit direction of polar angle ``theta`` and azimuth ``phi`` (radians)."""
-    return directions_from_angles(np.asarray(theta, dtype=np.float64), np.asarray(phi, dtype=np.float64))
+    return direction(theta, phi)
 
 
 def default_shared_data() -> Path:
@@ -59,7 +59,7 @@ def procedural_room(height: int = 256) -> np.ndarray:
 
     float32 (H, 2H, 3). Radiance: ceiling 0.3 .. 1.0, window 8, floor 0.15.
     """
-    d = equirect_directions(height)
+    d = equirect_centres(height)
     y = d[..., 1]
     img = np.empty(d.shape, np.float32)
     up = np.clip(y, 0, 1)[..., None]

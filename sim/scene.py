@@ -23,11 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from lightprobe.core.imageio import read_hdr_image
-from lightprobe.core.sphere import (
-    angles_from_directions,
-    equirect_integral,
-    equirect_row_solid_angle,
-)
+
+from .optics import angles_of, equirect_integral, equirect_row_omega
 
 __all__ = ["DynamicLight", "Scene", "clean_radiance", "disc_energy", "rasterize_disc"]
 
@@ -80,7 +77,7 @@ def rasterize_disc(h: int, direction: np.ndarray, radius_rad: float, *, max_sub:
     Returns
     -------
     rows, cols : int64 pixel indices; frac : float64 covered fraction in (0, 1].
-    The cap's integral is ``sum(frac * Omega_pixel)`` (Omega exact, lightprobe.core.sphere); it matches
+    The cap's integral is ``sum(frac * Omega_pixel)`` (Omega exact, :func:`lightprobe.sim.optics.equirect_row_omega`); it matches
     ``2 pi (1 - cos radius)`` to within 0.15% for radii from 0.1 deg to 60 deg at H = 512.
     """
     d = np.asarray(direction, dtype=np.float64)
@@ -89,7 +86,7 @@ def rasterize_disc(h: int, direction: np.ndarray, radius_rad: float, *, max_sub:
     w = 2 * h
     if alpha <= 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    theta_c, phi_c = (float(v) for v in angles_from_directions(d))
+    theta_c, phi_c = (float(v) for v in angles_of(d))
     rows, cols = _disc_rows_cols(h, theta_c, phi_c, alpha)
     pix = math.pi / h
     n = int(min(max_sub, max(2, math.ceil(16 * pix / alpha))))
@@ -219,4 +216,4 @@ class Scene:
         return tot
 
     def row_solid_angle(self) -> np.ndarray:
-        return equirect_row_solid_angle(self.height)
+        return equirect_row_omega(self.height)

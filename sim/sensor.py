@@ -10,7 +10,7 @@ vignetting factor, ``t`` exposure in seconds, ``g`` analogue gain)::
     RGB8  : z = round(255 f_c(max(x, 0)))        f_c the per-channel response curve    (S5)
     RAWb  : z = clip(round(black + x (white - black)), 0, white), white = 2^b - 1     (S6)
 
-``x`` is what ``Response.inverse`` returns, so fused values ``x / (t g) / V = L S / FW`` and the
+``x`` is what the calibration's response table (its ``inverse``) gives for a code, so fused values ``x / (t g) / V = L S / FW`` and the
 photometric scale of the truth calibration is ``FW / S`` (fused x scale = scene radiance).
 
 Default parameters (typical of a small CMOS module): full well 6000 e-, read noise 2.5 e-,
@@ -51,7 +51,6 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from lightprobe.core.calibration import Response
 from lightprobe.drivers.base import PixelFormat
 
 __all__ = ["ResponseCurve", "SensorModel", "raw_levels"]
@@ -96,12 +95,12 @@ class ResponseCurve:
         u = b * y / (1 + b - y)
         return np.where(u < s * _X0, u / s, np.power((u + a) / (1 + a), gamma))
 
-    def truth_response(self) -> Response:
-        """The exact inverse table for 8-bit output: inverse[z] = f^-1(z / 255)."""
+    def inverse_table(self) -> np.ndarray:
+        """The exact inverse table for 8-bit output, (256, 3): ``[z, c] = f_c^-1(z / 255)``."""
         z = np.arange(256, dtype=np.float64) / 255.0
         inv = self.inverse(np.repeat(z[:, None], 3, axis=1))
         inv[0], inv[-1] = 0.0, 1.0  # exact ends (rounding in the closed form)
-        return Response("table", 8, inv, "truth")
+        return inv
 
 
 def raw_levels(fmt: PixelFormat) -> tuple[float, float]:
@@ -211,13 +210,20 @@ class SensorModel:
         y = (np.arange(255, dtype=np.float64) + 0.5) / 255.0
         return self.response.inverse(np.repeat(y[:, None], 3, axis=1))
 
-    def truth_response(self, fmt: PixelFormat) -> Response:
-        """The response the fusion should use for ``fmt`` (maps pixel value to x of eq. S4)."""
+    def truth_inverse(self, fmt: PixelFormat) -> np.ndarray:
+        """Pixel value -> x of eq. (S4) for ``fmt``, (2^bits, 3) float64: the exact inverse of
+        the 8-bit curve, or ``(z - black) / (white - black)`` clipped at 0 for raw."""
         if fmt is PixelFormat.RGB8:
-            return self.response.truth_response()
+            return self.response.inverse_table()
         black, white = raw_levels(fmt)
-        r = Response.linear(fmt.bit_depth, black, white)
-        return Response(r.model, r.bits, r.inverse, "truth")
+        z = np.arange(1 << fmt.bit_depth, dtype=np.float64)
+        return np.repeat(np.clip((z - black) / (white - black), 0.0, None)[:, None], 3, axis=1)
+
+    def truth_response_section(self, fmt: PixelFormat) -> dict[str, object]:
+        """The response for ``fmt`` as the calibration file's ``response`` section (CONVENTIONS.md):
+        ``inverse`` is channel-major, 3 rows of 2^bits values."""
+        return {"model": "linear" if fmt.is_raw else "table", "bits": fmt.bit_depth, "method": "truth",
+                "inverse": self.truth_inverse(fmt).T.tolist()}
 
     @property
     def photometric_scale(self) -> float:

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from lightprobe.core.calibration import Calibration, FisheyeModel, Pose, Response
+from lightprobe.core.calibration import Calibration
 from lightprobe.drivers.base import CameraDisconnected, CameraUnavailable
 from lightprobe.drivers.v4l2._ioctl import IoctlError
 from lightprobe.drivers.v4l2._structs import ABI64, V4L2Abi
@@ -459,12 +459,18 @@ def fake_uvc_calibration(width: int = 640, height: int = 480) -> Calibration:
     (the YUYV round trip adds under a code of error). No photometric scale: unit ``relative``."""
     f = (min(width, height) / 2.0) / (np.pi / 2.0)
     K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-    fisheye = FisheyeModel(image_size=(width, height), K=K, D=np.zeros(4), fov_deg=180.0)
     z = np.arange(256, dtype=np.float64) / 255.0
-    inverse = np.repeat((z ** 2.2)[:, None], 3, axis=1)
+    inverse = z ** 2.2
     inverse[0] = 0.5 * inverse[1]  # strictly increasing
-    return Calibration(fisheye=fisheye, response=Response("table", 8, inverse, method="factory"),
-                       pose=Pose(), source="factory")
+    # The calibration file's schema (CONVENTIONS.md), as the module's EEPROM would hold it
+    return Calibration.from_json({
+        "version": Calibration.VERSION,
+        "source": "factory",
+        "fisheye": {"model": "opencv-fisheye", "image_size": [width, height], "K": K.tolist(),
+                    "D": [0.0, 0.0, 0.0, 0.0], "fov_deg": 180.0},
+        "response": {"model": "table", "bits": 8, "method": "factory", "inverse": [inverse.tolist()] * 3},
+        "pose": {"rotation": np.eye(3).tolist(), "position": [0.0, 0.0, 0.0]},
+    })
 
 
 class FakeUVCCamera(V4L2Camera):

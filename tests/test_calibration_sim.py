@@ -28,16 +28,18 @@ from lightprobe.drivers.base import (
     PixelFormat,
 )
 from lightprobe.sim.board import BoardRenderer, random_pose, true_corners
+from lightprobe.sim.optics import Kb4Lens
 
 BOARD = BoardSpec(9, 6, 0.04)
 
 
-def lens(fov_deg: float) -> FisheyeModel:
-    return FisheyeModel((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),
+def lens(fov_deg: float) -> Kb4Lens:
+    """The true lens, the simulator's own KB4 model (the calibration under test fits a FisheyeModel)."""
+    return Kb4Lens((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),
                         np.array([0.03, -0.01, 0.004, -0.0008]), fov_deg=fov_deg)
 
 
-def render_views(true: FisheyeModel, n: int, seed: int, max_theta: float
+def render_views(true: Kb4Lens, n: int, seed: int, max_theta: float
                  ) -> tuple[list[View], float]:
     """Up to ``n`` detected views with board centres up to ``max_theta`` deg off-axis, and the
     largest true corner angle (deg) among them."""
@@ -62,7 +64,7 @@ def render_views(true: FisheyeModel, n: int, seed: int, max_theta: float
     return views, theta_max
 
 
-def reprojection_vs_truth(est: FisheyeModel, true: FisheyeModel, theta_max_deg: float) -> tuple[float, float]:
+def reprojection_vs_truth(est: FisheyeModel, true: Kb4Lens, theta_max_deg: float) -> tuple[float, float]:
     """(max, rms) pixel distance between estimated and true projections of directions up to
     ``theta_max_deg`` (72 azimuths x 60 polar angles)."""
     th = np.radians(np.linspace(0, theta_max_deg, 60))
@@ -74,7 +76,7 @@ def reprojection_vs_truth(est: FisheyeModel, true: FisheyeModel, theta_max_deg: 
 
 
 @pytest.fixture(scope="module")
-def sim190() -> tuple[FisheyeModel, list[View], float]:
+def sim190() -> tuple[Kb4Lens, list[View], float]:
     true = lens(190.0)
     views, theta_max = render_views(true, 24, seed=1, max_theta=90.0)
     assert len(views) >= 20
@@ -82,7 +84,7 @@ def sim190() -> tuple[FisheyeModel, list[View], float]:
 
 
 @pytest.mark.slow
-def test_sim_lens_recovered(sim190: tuple[FisheyeModel, list[View], float]) -> None:
+def test_sim_lens_recovered(sim190: tuple[Kb4Lens, list[View], float]) -> None:
     true, views, theta_max = sim190
     res = calibrate_views(views, true.image_size)
     K = res.model.K

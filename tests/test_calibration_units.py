@@ -213,6 +213,7 @@ def test_cli_pose_from_rendered_floor_board(tmp_path) -> None:  # type: ignore[n
 
     from lightprobe.cli.calibrate import main as calibrate_main
     from lightprobe.sim.board import BoardPose, BoardRenderer
+    from lightprobe.sim.optics import Kb4Lens
 
     model = FisheyeModel((640, 640), np.array([[190.0, 0, 321.3], [0, 190.4, 318.2], [0, 0, 1]]),
                          np.array([0.03, -0.01, 0.004, -0.0008]), fov_deg=190.0)
@@ -221,7 +222,8 @@ def test_cli_pose_from_rendered_floor_board(tmp_path) -> None:  # type: ignore[n
     origin = np.array([-0.7, -1.5, 0.5])
     R_cb = CAMERA_TO_PROBE.T @ R_true.T @ R_room_board
     t_cb = CAMERA_TO_PROBE.T @ R_true.T @ origin
-    img = BoardRenderer(model, supersample=2).render(BoardPose(R_cb, t_cb), 9, 6, 0.15,
+    true = Kb4Lens(model.image_size, model.K, model.D, model.fov_deg)
+    img = BoardRenderer(true, supersample=2).render(BoardPose(R_cb, t_cb), 9, 6, 0.15,
                                                       rng=np.random.default_rng(1))
     cv2.imwrite(str(tmp_path / "floor.png"), img)
     out = tmp_path / "calib.json"

@@ -193,11 +193,11 @@ def test_response_curve_is_smooth_increasing_and_exactly_inverted() -> None:
     assert np.ptp(curve.forward(np.full((1, 3), 0.18))) > 0.01
     slope = np.diff(y, axis=0) / np.diff(x, axis=0)
     assert np.all(slope[-1] < slope[len(slope) // 2])
-    table = SensorModel().truth_response(PixelFormat.RGB8)
-    assert table.inverse.shape == (256, 3)
-    assert table.inverse[0].tolist() == [0, 0, 0]
-    assert table.inverse[255].tolist() == [1.0, 1.0, 1.0]
-    assert np.all(np.diff(table.inverse, axis=0) > 0)
+    inverse = SensorModel().truth_inverse(PixelFormat.RGB8)
+    assert inverse.shape == (256, 3)
+    assert inverse[0].tolist() == [0, 0, 0]
+    assert inverse[255].tolist() == [1.0, 1.0, 1.0]
+    assert np.all(np.diff(inverse, axis=0) > 0)
     # The 8-bit code of x is the rounding of 255 f(x), implemented as a threshold search
     xs = np.random.default_rng(1).uniform(0, 1, (20000, 3))
     codes = SensorModel().digitise(xs * 6000.0, 1.0, PixelFormat.RGB8)
