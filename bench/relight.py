@@ -5,7 +5,8 @@ against frame time.
 Scenes: ``../shared/data/meshes/spot.obj`` on a ground plane.
 * A (accuracy): spot static, ground 25 x 25 vertices (3,555 vertices). For each tau: SVC precompute
   time, mean cut size, data size height- vs index-coded, and per-vertex luminance error against the
-  brute-force reference (same 2^15 directions, full ray-cast visibility, same BRDFs) under the six
+  independent brute-force reference (:mod:`lightprobe.bench.relight_reference`: its own 2^15-cell
+  quadrature of each map, one Embree ray per direction, its own BRDF loop) under the six
   shared maps, with and without the cosine-moment correction (without = the paper's plain Eq. 3).
   Error metric: relative RMS over vertices, sqrt(sum (Y - Y_ref)^2 / sum Y_ref^2), Y = Rec.709
   luminance of the outgoing radiance towards the camera; the reference uses every ``stride``-th vertex.
@@ -43,10 +44,10 @@ def _sizes(offsets: np.ndarray, kind: str) -> tuple[int, int]:
             int(sum(index_coded_nbytes(int(n), kind) * int(c) for n, c in zip(uniq, counts, strict=True))))
 
 
-def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
+def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]) -> dict[str, Any]:
+    from lightprobe.bench.relight_reference import relighter_reference
     from lightprobe.core.sphere import luminance
     from lightprobe.hostlink.relight.cuts.precompute import precompute
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
     from lightprobe.hostlink.relight.cuts.render import Relighter
     from lightprobe.hostlink.relight.scene import load_scene
 
@@ -62,7 +63,7 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
         eye = scene.camera.position
         if ref is None:
             t0 = time.perf_counter()
-            ref = reference_radiance(rl, leaf_lights, eye, vidx)
+            ref = relighter_reference(rl, maps, eye, vidx)
             ref_s = time.perf_counter() - t0
         hb, ib = _sizes(pre.svc_offsets, "u8")
         row: dict[str, Any] = {"tau": tau, "precompute_s": round(pre.seconds, 2), "vertices": len(pre.vertices),
@@ -82,13 +83,13 @@ def _accuracy(d: Path, quick: bool, leaf_lights: np.ndarray) -> dict[str, Any]:
     return {"stride": stride, "reference_s": round(ref_s, 2), "rows": rows}
 
 
-def _errors(rl, leaf_lights: np.ndarray, eye: np.ndarray, vidx: np.ndarray,  # type: ignore[no-untyped-def]
-            groups: dict[str, np.ndarray]) -> dict[str, Any]:
+def _errors(rl, leaf_lights: np.ndarray, maps: list[np.ndarray], eye: np.ndarray,  # type: ignore[no-untyped-def]
+            vidx: np.ndarray, groups: dict[str, np.ndarray]) -> dict[str, Any]:
     """Relative RMS luminance error against brute force per map, overall and per vertex group."""
+    from lightprobe.bench.relight_reference import relighter_reference
     from lightprobe.core.sphere import luminance
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
-    ref = reference_radiance(rl, leaf_lights, eye, vidx)
+    ref = relighter_reference(rl, maps, eye, vidx)
     out: dict[str, Any] = {}
     for mi, name in enumerate(MAPS):
         rl.set_leaf_light(leaf_lights[mi])
@@ -180,13 +181,13 @@ def _speed(d: Path, quick: bool, leaf_lights: np.ndarray, maps: list[np.ndarray]
     stride = 40 if quick else 10
     vidx = np.arange(0, len(st.vertices), stride)
     spot = st.object_id[vidx] == 0
-    out["static_error_vs_reference"] = _errors(rls, leaf_lights, eye, vidx, {"spot": spot, "ground": ~spot})
+    out["static_error_vs_reference"] = _errors(rls, leaf_lights, maps, eye, vidx, {"spot": spot, "ground": ~spot})
     for label, rot in (("moving", None), ("rotated", [0.0, 40.0, 0.0])):
         rld.move("spot", np.array([0.3, 0, 0]), None if rot is None else np.array(rot))
         dist = np.linalg.norm(rld.positions()[vidx] - rld._centers()[0], axis=1)
         inner = (dyn.object_id[vidx] == 1) & (dist < rld._radii[0, 0])
         out[f"{label}_error_vs_reference"] = _errors(
-            rld, leaf_lights, eye, vidx, {"spot": spot, "ground_inside_inner_sphere": inner,
+            rld, leaf_lights, maps, eye, vidx, {"spot": spot, "ground_inside_inner_sphere": inner,
                                           "ground_outside_inner_sphere": (dyn.object_id[vidx] == 1) & ~inner})
     rld.move("spot", np.zeros(3))
     return out
@@ -256,7 +257,7 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     d.mkdir(parents=True, exist_ok=True)
     maps = [read_hdr_image(SHARED / "envmaps" / m) for m in MAPS]
     leaf_lights = np.stack([leaf_light_from_equirect(m) for m in maps])
-    acc = _accuracy(d, quick, leaf_lights)
+    acc = _accuracy(d, quick, leaf_lights, maps)
     speed = _speed(d, quick, leaf_lights, maps)
     comp = {str(k): round(v, 2) for k, v in cluster_compactness().items()}
     default = next(r for r in acc["rows"] if r["tau"] == 2e-5)

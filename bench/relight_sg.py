@@ -35,10 +35,9 @@ def _deformed(rest: np.ndarray, f: int) -> np.ndarray:
     return v
 
 
-def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
+def _accuracy(d: Path, lobes: list[Any], light: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+    from lightprobe.bench.relight_reference import brute_force_radiance
     from lightprobe.core.sphere import luminance
-    from lightprobe.hostlink.relight.cuts.reference import brute_force_radiance
-    from lightprobe.hostlink.relight.rays import scene_eps
     from lightprobe.hostlink.relight.scene import load_scene
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
@@ -55,7 +54,7 @@ def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
         vidx = np.arange(0, len(probe.vertices), 5)
         t0 = time.perf_counter()
         ref = brute_force_radiance(probe.vertices, probe.faces, probe.normals(), probe.matid, probe.mats,
-                                   scene_eps(scene), leaf, eye, vidx)
+                                   *light, eye, vidx)
         ref_s = time.perf_counter() - t0
         for vis in ("rays", "voxels"):
             rl = SGRelighter(scene, visibility=vis)
@@ -78,7 +77,7 @@ def _accuracy(d: Path, lobes: list[Any], leaf: np.ndarray) -> dict[str, Any]:
                 rl.set_vertices("spot", _deformed(rest, f))
                 b = rl.vertex_radiance(eye, vidx)
                 r = brute_force_radiance(rl.vertices, rl.faces, rl.normals(), rl.matid, rl.mats,
-                                         scene_eps(scene), leaf[1:2], eye, vidx)[0]
+                                         light[0][1:2], light[1][1:2], eye, vidx)[0]
                 frames.append(round(rel_rms(luminance(b), luminance(r)), 4))
             out["phong/voxels/deforming_rooitou"] = frames
     return out
@@ -194,9 +193,9 @@ def pareto_plot(out_dir: Path, sg: dict[str, Any], cuts: dict[str, Any] | None) 
 def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     import os
 
+    from lightprobe.bench.relight_reference import equirect_quadrature
     from lightprobe.core.imageio import read_hdr_image
     from lightprobe.device.formats.sgfit import fit_sg
-    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
     from lightprobe.hostlink.relight.cuts.precompute import default_cache_dir
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -204,9 +203,9 @@ def run(out_dir: Path, quick: bool) -> dict[str, Any]:
     d.mkdir(parents=True, exist_ok=True)
     maps = [read_hdr_image(SHARED / "envmaps" / m) for m in MAPS]
     lobes = [fit_sg(m) for m in maps]
-    leaf = np.stack([leaf_light_from_equirect(m) for m in maps])
+    light = equirect_quadrature(maps)
     load0 = os.getloadavg()[0]
-    acc = _accuracy(d, lobes, leaf)
+    acc = _accuracy(d, lobes, light)
     speed = _speed(d, lobes, 3 if quick else 7)
     cold = _cold_first_frame(d)
     summary = {"max_rel_rms": {k: v["max"] for k, v in acc.items() if isinstance(v, dict)},

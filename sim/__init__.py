@@ -23,7 +23,7 @@ Typical use::
 The simulator is its own implementation: its lens, vignetting, mounting and response are written
 from the documents (CONVENTIONS.md, NOTES.md), not imported from the probe, and its truth
 calibration is those models written in the calibration file's schema
-(``tests/test_sim_independence.py``).
+(``tests/test_independence.py``).
 
 Importing this package does nothing (no files read, no threads).
 """

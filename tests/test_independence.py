@@ -143,3 +143,62 @@ def test_the_truth_calibration_is_the_simulators_models_read_through_the_file_sc
     assert np.abs(back - x).max() <= step
     # And the file round-trips: what the service saves is what the simulator handed out
     assert Calibration.from_json(json.loads(json.dumps(cal.to_json()))).id == cal.id
+
+
+# ---- the references share no function with the code they check ---------------------------------
+def _function_imports(path: Path, function: str | None = None) -> set[str]:
+    """Modules imported by ``path`` (only inside ``function`` when given)."""
+    tree = ast.parse(path.read_text())
+    if function is not None:
+        tree = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == function)
+    mods = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            mods |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            mods.add(node.module)
+    return mods
+
+
+def test_the_relighting_reference_uses_nothing_of_the_relighting() -> None:
+    mods = _function_imports(SIM.parent / "bench" / "relight_reference.py")
+    assert {m for m in mods if m.startswith("lightprobe")} == set()
+    assert "embreex" in mods  # its own rays
+
+
+def test_the_cube_map_reference_uses_nothing_of_the_filter() -> None:
+    mods = _function_imports(SIM.parent / "bench" / "formats.py", "ggx_reference")
+    assert not [m for m in mods if m.startswith(("lightprobe.device", "lightprobe.hostlink"))]
+
+
+def _albedo_at_normal_incidence(kind: int, p: float) -> float:
+    """Directional albedo of a lobe seen along the normal, by 1-D quadrature over the polar angle
+    (the half vector of w and n = w_o is at theta / 2)."""
+    from scipy.integrate import quad
+
+    lobes = {
+        0: lambda t: 1.0 / np.pi,
+        1: lambda t: (p + 2) / (2 * np.pi) * np.cos(t) ** p,
+        2: lambda t: (p + 8) / (8 * np.pi) * np.cos(t / 2) ** p,
+        3: lambda t: np.exp(-np.tan(t / 2) ** 2 / p**2) / (4 * np.pi * p * p * np.sqrt(max(np.cos(t), 1e-2))),
+    }
+    return float(quad(lambda t: 2 * np.pi * np.sin(t) * np.cos(t) * lobes[kind](t), 0, np.pi / 2, limit=200)[0])
+
+
+@pytest.mark.parametrize(("kind", "p"), [(0, 1.0), (1, 20.0), (1, 200.0), (2, 40.0), (3, 0.2), (3, 0.05)])
+def test_the_relighting_references_brdfs_hold_the_white_furnace(kind: int, p: float) -> None:
+    """A patch facing up, seen from straight above, under radiance 1 from every direction and
+    nothing to shadow it reflects its lobe's albedo (1 for Lambert and normalised Phong)."""
+    from lightprobe.bench.relight_reference import brute_force_radiance, equirect_quadrature
+
+    pos = np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 0.0, 1e-3]])
+    faces = np.array([[0, 2, 1]])
+    normals = np.tile([0.0, 1.0, 0.0], (3, 1))
+    kd, ks = (1.0, 0.0) if kind == 0 else (0.0, 1.0)
+    mats = np.array([[kind, kd, kd, kd, ks, ks, ks, p]])
+    light = equirect_quadrature([np.ones((512, 1024, 3), np.float32)], height=512)
+    out = brute_force_radiance(pos, faces, normals, np.zeros(3, np.int64), mats, *light,
+                               eye=np.array([0.0, 10.0, 0.0]), vidx=np.array([0]))
+    expect = _albedo_at_normal_incidence(kind, p)
+    assert kind > 1 or expect == pytest.approx(1.0, rel=1e-6)
+    np.testing.assert_allclose(out[0, 0], expect, rtol=5e-3)
