@@ -5,9 +5,10 @@ Start-up: ``lightprobe serve --camera sim`` as a subprocess; per run, from ``exe
 the socket accepts) and ``/api/v1/healthz`` answers, ``lights_s`` when the first light set arrives
 on ``WS /api/v1/stream`` (the client connects as soon as the API answers), and the service's CPU
 seconds by then (``/proc/PID/stat``: the least load-dependent figure on a shared box).
-``cold``: a fresh state directory (projection tables and the simulator's lens matrix built);
-``warm``: the same state directory again (tables loaded from ``STATE/cache``). numba's kernel
-cache is warm in both (it is built once per install, not per calibration).
+``cold``: a fresh state directory (projection tables built); ``warm``: the same state directory
+again (tables loaded from ``STATE/cache``). numba's kernel cache is warm in both (it is built
+once per install, not per calibration), and so is the simulator's lens-matrix cache (the user's,
+:func:`lightprobe.sim.plugin.sim_cache_dir`: the simulator's, not the unit's).
 
 Reconnect: the service in-process (the real pipeline on the simulator, default backoff), a 5 s
 simulated disconnect (``lightprobe.sim.faults``); ``resume_s`` = first fresh (``stale: false``) light set
@@ -29,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["exec_to_lights", "reconnect_latency", "startup_summary"]
+__all__ = ["exec_to_lights", "reconnect_latency", "start_serve", "startup_summary", "stop_service", "write_config"]
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -53,7 +54,7 @@ def _cpu_s(pid: int) -> float:
         return float("nan")
 
 
-def _write_config(state: Path, fps: float, light_count: int) -> Path:
+def write_config(state: Path, fps: float, light_count: int) -> Path:
     state.mkdir(parents=True, exist_ok=True)
     cfg = state / "config.toml"
     cfg.write_text(f"[pipeline]\nfps = {fps!r}\nlight_count = {light_count}\n[mdns]\nenabled = false\n")
@@ -84,9 +85,9 @@ async def _first_lights(url: str, wait_s: float) -> tuple[float, float, dict[str
 def exec_to_lights(state: Path, scene: str = "lebombo", *, fps: float = 10.0, light_count: int = 256,
                    timeout: float = 400.0) -> dict[str, Any]:
     """One start of ``lightprobe serve``: seconds from exec to the API and to the first lights."""
-    cfg = _write_config(state, fps, light_count)
+    cfg = write_config(state, fps, light_count)
     t0 = time.monotonic()
-    p, url = _start_serve("sim", scene, state, cfg, {}, subprocess.DEVNULL)
+    p, url = start_serve("sim", scene, state, cfg, {}, subprocess.DEVNULL)
     try:
         t_print = time.monotonic()
         t_api, t_lights, first = asyncio.run(_first_lights(url, timeout))
@@ -243,7 +244,7 @@ async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
     return out
 
 
-def _start_serve(camera: str, scene: str, state: Path, cfg: Path, env: dict[str, str], stderr: Any
+def start_serve(camera: str, scene: str, state: Path, cfg: Path, env: dict[str, str], stderr: Any
                  ) -> tuple[subprocess.Popen[str], str]:
     """``lightprobe serve`` as a user starts it; returns the process and the dashboard URL it
     printed."""
@@ -264,11 +265,11 @@ def serve_live(state: Path, *, camera: str = "sim", scene: str = "flashlight", w
     """``lightprobe serve`` as a user starts it: first lights after exec, light sets per second
     on the WebSocket, the first q2tree call, reconnects logged, RSS and peak RSS after
     ``rss_after_s`` seconds."""
-    cfg = _write_config(state, fps, 256)
+    cfg = write_config(state, fps, 256)
     t0 = time.monotonic()
     log_path = state / "serve.log"
     with log_path.open("w") as log:
-        p, url = _start_serve(camera, scene, state, cfg, env or {}, log)
+        p, url = start_serve(camera, scene, state, cfg, env or {}, log)
         try:
             _t_api, t_lights, _first = asyncio.run(_first_lights(url, 300))
             out: dict[str, Any] = {"camera": camera, "scene": scene, "lights_s": t_lights - t0}

@@ -21,20 +21,35 @@ first second):
 
 ``tests/test_stability.py`` asserts issue 43's targets on these figures over more than a
 planner period (420 frames); the full run is 3,600 frames (two minutes of sensor time) per scene,
-``--quick`` 420. Writes ``stability.json``.
+``--quick`` 420.
+
+Wall time (:func:`wall_record`): the same figures as a user sees them: ``lightprobe serve
+--camera sim --scene MAP`` from exec in a fresh state directory (tables and the simulator's lens
+built), every light set on ``WS /api/v1/stream`` for 60 s after first lights (``--quick``: 10 s,
+two maps), with the seconds from exec to the first lights, to the first unmarked set and to
+the last marked one.
+
+Hand-overs (:func:`handover_record`): the service in-process on a static map, steady for a
+window, then a 1 s camera disconnect (the simulator's fault), then a calibration reload (the
+pipeline rebuilt from the stored calibration, as a committed calibration does), a window after
+each: the published energy of the fresh, unmarked sets after each against the median before.
+
+Writes ``stability.json``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["SCENES", "figures", "record", "run", "sun_map"]
+__all__ = ["SCENES", "figures", "handover_record", "record", "run", "sun_map", "wall_figures", "wall_record"]
 
 # the shared maps (../shared/data/envmaps), then the synthetic suns
 SCENES = ["lebombo_1k.hdr", "rooitou_park_1k.hdr", "studio_small_03_1k.hdr", "potsdamer_platz_1k.hdr",
@@ -146,6 +161,146 @@ def figures(rec: dict[str, Any], fps: float = FPS) -> dict[str, Any]:
     }
 
 
+# ---- wall time -----------------------------------------------------------------------------------
+def _set_energy(d: dict[str, Any]) -> tuple[float, np.ndarray]:
+    """(luminance of the lights' summed rgb, the brightest light's direction) of a light-set JSON."""
+    from lightprobe.core.sphere import LUMINANCE_WEIGHTS
+
+    if not d["lights"]:
+        return 0.0, np.zeros(3)
+    rgb = np.array([li["rgb"] for li in d["lights"]], np.float64)
+    lum = rgb @ LUMINANCE_WEIGHTS
+    return float(lum.sum()), np.asarray(d["lights"][int(np.argmax(lum))]["direction"], np.float64)
+
+
+async def _read_stream(url: str, seconds: float, t_exec: float) -> dict[str, Any]:
+    import aiohttp
+
+    async with aiohttp.ClientSession() as session:
+        while True:  # the API answers once the server listens
+            try:
+                async with session.get(url + "/api/v1/healthz") as r:
+                    await r.read()
+                break
+            except aiohttp.ClientConnectionError:
+                await asyncio.sleep(0.005)
+        t, energy, settling, brightest = [], [], [], []
+        async with session.ws_connect(url + "/api/v1/stream") as ws:
+            end = None
+            while end is None or time.monotonic() < end:
+                msg = await ws.receive(timeout=400)
+                if msg.type != aiohttp.WSMsgType.TEXT:
+                    raise RuntimeError(f"stream ended: {msg}")
+                d = json.loads(msg.data)
+                now = time.monotonic()
+                end = end or now + seconds
+                if d["stale"]:
+                    continue
+                e, b = _set_energy(d)
+                t.append(now - t_exec)
+                energy.append(e)
+                settling.append(bool(d.get("settling", False)))
+                brightest.append(b)
+    return {"t": np.array(t), "energy": np.array(energy), "settling": np.array(settling),
+            "brightest": np.array(brightest)}
+
+
+def wall_record(scene: str, seconds: float, state: Path) -> dict[str, Any]:
+    """``lightprobe serve --camera sim --scene SCENE`` from exec in the fresh state dir ``state``
+    (30 fps, 256 lights): every fresh light set on the WebSocket for ``seconds`` after the first,
+    with its time since exec."""
+    from lightprobe.bench.service_startup import start_serve, stop_service, write_config
+
+    cfg = write_config(state, 30.0, 256)
+    t0 = time.monotonic()
+    p, url = start_serve("sim", scene, state, cfg, {}, subprocess.DEVNULL)
+    try:
+        return asyncio.run(_read_stream(url, seconds, t0))
+    finally:
+        stop_service(p)
+
+
+def wall_figures(rec: dict[str, Any]) -> dict[str, Any]:
+    """:func:`figures` of a wall-time record (the first second counted in sets at the measured
+    rate), with the seconds from exec to the first lights, the first unmarked set and the last
+    marked one."""
+    t, marked = rec["t"], rec["settling"]
+    rate = (len(t) - 1) / max(float(t[-1] - t[0]), 1e-9)
+    f = figures({**rec, "shortest": np.zeros(len(t)), "first_unmarked_diffuse": None, "last_diffuse": None},
+                fps=rate)
+    f.pop("shortest_exposures_s")
+    unmarked = np.flatnonzero(~marked)
+    return {**f, "sets_per_s": rate, "first_lights_s": float(t[0]),
+            "first_unmarked_s": float(t[unmarked[0]]) if unmarked.size else None,
+            "last_settling_s": float(t[np.flatnonzero(marked).max()]) if marked.any() else None}
+
+
+async def _handover(scene: str, state: Path, window_s: float) -> dict[str, Any]:
+    import aiohttp
+    from aiohttp import web
+
+    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
+    from lightprobe.device.service.app import create_app
+    from lightprobe.device.service.config import ServiceConfig
+    from lightprobe.device.service.state import STATE
+
+    cfg = ServiceConfig(path=state / "config.toml").with_patch(
+        {"mdns": {"enabled": False}, "pipeline": {"fps": FPS, "light_count": 256}})
+    app = create_app(cfg, camera_factory("sim", scene, state / "cache"), pipeline_factory(state, "stability01"),
+                     token="stability-token-0123456789", probe_id="stability01", port=0)
+    runner = web.AppRunner(app, shutdown_timeout=0.5, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+    st = app[STATE]
+    phases: dict[str, dict[str, list[Any]]] = {}
+
+    async def watch(ws: Any, name: str, seconds: float) -> None:
+        ph = phases.setdefault(name, {"energy": [], "settling": [], "stale": []})
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            d = json.loads((await ws.receive(timeout=120)).data)
+            ph["energy"].append(_set_energy(d)[0])
+            ph["settling"].append(bool(d.get("settling", False)))
+            ph["stale"].append(bool(d["stale"]))
+
+    try:
+        async with aiohttp.ClientSession() as c, c.ws_connect(f"http://127.0.0.1:{port}/api/v1/stream") as ws:
+            await watch(ws, "start", 3.0)  # first lights, the metering sweep, the balanced table
+            await watch(ws, "before", window_s)
+            st.camera.faults.inject("disconnect", duration_s=1.0)
+            await watch(ws, "reconnect", window_s)
+            async with st.runner.camera_lease(st.camera):  # what a calibration commit does
+                pass
+            await watch(ws, "reload", window_s)
+    finally:
+        await runner.cleanup()
+    return {k: {kk: np.array(vv) for kk, vv in v.items()} for k, v in phases.items()}
+
+
+def handover_record(scene: str, state: Path, window_s: float = 8.0) -> dict[str, Any]:
+    """Energy continuity through a camera reconnect and a calibration reload (module docstring):
+    per event, the fresh sets after it (stale or settling ones counted apart), their energy's
+    largest deviation and median shift from the median before, in the steady sets' noise (the
+    before window's largest deviation from its own median)."""
+    ph = asyncio.run(_handover(scene, state, window_s))
+    before = ph["before"]
+    ok = ~before["stale"] & ~before["settling"]
+    ref = float(np.median(before["energy"][ok]))
+    out: dict[str, Any] = {"before_sets": int(ok.sum()),
+                           "noise_max_dev": float(np.abs(before["energy"][ok] / ref - 1).max())}
+    for name in ("reconnect", "reload"):
+        p = ph[name]
+        fresh = ~p["stale"] & ~p["settling"]
+        e = p["energy"][fresh] / ref - 1.0
+        out[name] = {"stale_sets": int(p["stale"].sum()), "settling_sets": int((p["settling"] & ~p["stale"]).sum()),
+                     "fresh_sets": int(fresh.sum()), "max_dev": float(np.abs(e).max()) if e.size else None,
+                     "median_shift": float(np.median(e)) if e.size else None,
+                     "first_fresh_dev": float(e[0]) if e.size else None}
+    return out
+
+
 def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     from lightprobe.bench.relight_scenes import SHARED
 
@@ -157,7 +312,14 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         for scene in scenes:
             name = Path(scene).stem.removesuffix("_1k")
             results[name] = figures(record(scene, frames))
-    doc = {"frames": frames, "scenes": results}
+        wall: dict[str, Any] = {}
+        for scene in scenes[:2] if quick else scenes[: len(SCENES)]:
+            name = Path(scene).stem.removesuffix("_1k")
+            wall[name] = wall_figures(wall_record(scene, 10.0 if quick else 60.0, Path(tmp) / f"state-{name}"))
+        handover = handover_record(scenes[1], Path(tmp) / "state-handover")
+    from lightprobe.bench.machine import machine_info
+
+    doc = {"frames": frames, "scenes": results, "wall": wall, "handover": handover, "machine": machine_info()}
     (out_dir / "stability.json").write_text(json.dumps(doc, indent=1))
     summary = {k: {"first_set": round(v["first_set"], 3),
                    "first_unmarked": round(v["first_unmarked_set"], 4) if v["first_unmarked_set"] else None,
@@ -165,4 +327,11 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
                    "excursion_%": round(100 * v["largest_excursion"], 3), "creep_%": round(100 * v["creep"], 3),
                    "jitter_p99_deg": round(v["direction_jitter_p99_deg"], 3)}
                for k, v in results.items()}
+    summary["wall"] = {k: {"first_lights_s": round(v["first_lights_s"], 2),
+                           "first_unmarked_s": round(v["first_unmarked_s"], 2) if v["first_unmarked_s"] else None,
+                           "sets_per_s": round(v["sets_per_s"], 1), "f2f_p99_%": round(100 * v["f2f_p99"], 3),
+                           "excursion_%": round(100 * v["largest_excursion"], 3), "creep_%": round(100 * v["creep"], 3),
+                           "worst_unmarked_first_second_%": round(100 * v["worst_unmarked_first_second"], 2)}
+                       for k, v in wall.items()}
+    summary["handover"] = handover
     return {**doc, "summary": summary}

@@ -26,7 +26,7 @@ from .lens import SimLens
 __all__ = ["load_render_matrix"]
 
 log = logging.getLogger(__name__)
-_SUPERSAMPLE, _HOUSING = 4, True  # render_matrix's defaults, the ones SimCamera renders with
+_HOUSING = True  # render_matrix's default, the one SimCamera renders with
 
 
 def _path(lens: SimLens, eq_height: int, cache_dir: str) -> Path:
@@ -34,14 +34,14 @@ def _path(lens: SimLens, eq_height: int, cache_dir: str) -> Path:
     fe = lens.fisheye
     key = repr((hashlib.sha256(src).hexdigest(), fe.image_size, np.asarray(fe.K).tolist(),
                 np.asarray(fe.D).tolist(), fe.fov_deg, lens.vignetting, lens.circle_deg, lens.ring_deg,
-                lens.ring_transmission, eq_height, _SUPERSAMPLE, _HOUSING))
+                lens.ring_transmission, eq_height, lens.supersample_for(eq_height), _HOUSING))
     return Path(cache_dir) / f"simlens-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz"
 
 
 def load_render_matrix(lens: SimLens, eq_height: int, cache_dir: str) -> None:
     """Make ``lens.render(eq)`` for an ``eq_height`` map cheap: load its matrix from
     ``cache_dir`` into the lens's in-memory cache, or build it and save it there."""
-    key = (eq_height, _SUPERSAMPLE, _HOUSING)
+    key = (eq_height, lens.supersample_for(eq_height), _HOUSING)
     if key in lens._cache:
         return
     path = _path(lens, eq_height, cache_dir)
