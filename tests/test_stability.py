@@ -6,6 +6,8 @@ every cycle and keeps the brightest level of the last 10 s (300 frames), whose e
 published energy of a sun scene dip for 16 frames every ~345 frames before the planner read the
 sun's peak from the sensor's pixels. Scored by :mod:`lightprobe.bench.stability` (``lightprobe
 bench stability`` runs 3,600 frames per scene); figures to ``test-artifacts/stability.json``.
+The last test holds the published energy through a camera reconnect and a calibration reload
+(wall time, the service in-process).
 """
 
 from __future__ import annotations
@@ -48,3 +50,25 @@ def test_a_static_scene_publishes_steady_lighting_from_the_first_set(name: str, 
     assert abs(f["creep"]) <= 0.005, f
     # the first unmarked set is right, not only steady: diffuse irradiance within 1% of the truth
     assert f["first_unmarked_diffuse"] <= 0.01, f
+
+
+def test_the_published_energy_holds_through_a_reconnect_and_a_calibration_reload(shared_data: Path,
+                                                                                 tmp_path: Path) -> None:
+    """The service in-process on a sun map (wall time): a 1 s camera disconnect, then the
+    pipeline rebuilt from the stored calibration (what a committed calibration does). The sets
+    after each are marked while they are not yet right (``stale`` while the camera is away,
+    ``settling`` through the rebuilt pipeline's metering sweep) and every other one is close to
+    the energy before (its own noise: 0.4% at most over a window; measured after the reconnect
+    0.24-0.37%, after the reload 0.43-0.96%: the rebuilt pipeline's first unmarked sets, as at a
+    cold start), the median within 0.3%."""
+    from lightprobe.bench.stability import handover_record
+
+    res = handover_record(str(shared_data / "envmaps" / "rooitou_park_1k.hdr"), tmp_path / "state", window_s=4.0)
+    print(json.dumps(res))
+    assert res["before_sets"] > 30, res
+    for event in ("reconnect", "reload"):
+        r = res[event]
+        assert r["fresh_sets"] > 30, res
+        assert r["stale_sets"] >= 1, res  # the gap is marked, not hidden
+        assert r["max_dev"] <= (0.01 if event == "reconnect" else 0.015), res
+        assert abs(r["median_shift"]) <= 0.003, res
