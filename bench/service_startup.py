@@ -30,7 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["exec_to_lights", "reconnect_latency", "start_serve", "startup_summary", "stop_service", "write_config"]
+__all__ = ["exec_to_lights", "reconnect_latency", "start_serve", "startup_summary", "stop_service", "wait_for_api",
+           "write_config"]
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -61,18 +62,26 @@ def write_config(state: Path, fps: float, light_count: int) -> Path:
     return cfg
 
 
+async def wait_for_api(session: Any, url: str) -> None:
+    """Return as soon as the service at ``url`` answers ``/api/v1/healthz`` (polled every 2 ms)."""
+    import aiohttp
+
+    while True:
+        try:
+            async with session.get(url + "/api/v1/healthz") as r:
+                await r.read()
+        except aiohttp.ClientConnectionError:
+            await asyncio.sleep(0.002)
+        else:
+            return
+
+
 async def _first_lights(url: str, wait_s: float) -> tuple[float, float, dict[str, Any]]:
     """(API answered, first light set) monotonic times and that light set."""
     import aiohttp
 
     async with aiohttp.ClientSession() as session:
-        while True:
-            try:
-                async with session.get(url + "/api/v1/healthz") as r:
-                    await r.read()
-                break
-            except aiohttp.ClientConnectionError:
-                await asyncio.sleep(0.002)
+        await wait_for_api(session, url)
         t_api = time.monotonic()
         async with session.ws_connect(url + "/api/v1/stream") as ws:
             msg = await ws.receive(timeout=wait_s)

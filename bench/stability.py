@@ -176,14 +176,10 @@ def _set_energy(d: dict[str, Any]) -> tuple[float, np.ndarray]:
 async def _read_stream(url: str, seconds: float, t_exec: float) -> dict[str, Any]:
     import aiohttp
 
+    from lightprobe.bench.service_startup import wait_for_api
+
     async with aiohttp.ClientSession() as session:
-        while True:  # the API answers once the server listens
-            try:
-                async with session.get(url + "/api/v1/healthz") as r:
-                    await r.read()
-                break
-            except aiohttp.ClientConnectionError:
-                await asyncio.sleep(0.005)
+        await wait_for_api(session, url)
         t, energy, settling, brightest = [], [], [], []
         async with session.ws_connect(url + "/api/v1/stream") as ws:
             end = None
