@@ -17,11 +17,14 @@ angle, the Jacobian (KB4, ``r = f theta_d(theta)``)::
 A pixel's solid angle is ``Omega_p = sum_s a_s j_s`` and its radiance is the solid-angle-weighted
 mean over its footprint, ``L_p = sum_s a_s j_s L(d_s) / Omega_p`` (times the housing
 transmission ``T_p``). The subsample weights, summed per (sensor pixel, nearest equirect pixel),
-estimate the overlap solid angles; they are balanced to the exact marginals (see
-:meth:`SimLens.render_matrix`), so ``sum_p L_p Omega_p`` equals the equirect integral over the
-field of view (measured: within 0.1% at VGA, 0.4% at 1280 x 960, for the six shared maps'
-upper hemispheres). The weights form one CSR matrix (sensor pixels x equirect pixels) built
-once per (mode, equirect height); a frame is one sparse matmul.
+estimate the overlap solid angles (near the zenith, where equirect pixels are far smaller than
+sensor pixels, from the map's side); they are balanced to the exact marginals (see
+:meth:`SimLens.render_matrix`), so a uniform map renders exactly uniform and every equirect
+pixel's energy reaches the sensor: measured at VGA, 99.9% of the equirect pixels of the upper
+hemisphere within 0.4% (256 rows) and 0.23% (512 rows), a one-pixel sun at 50 deg within 0.01%
+(``tests/test_sim_physics.py`` checks suns at three elevations and the shared maps' totals). The
+weights form one CSR matrix (sensor pixels x equirect pixels) built once per (mode, equirect
+height); a frame is one sparse matmul.
 
 Dtype policy: geometry in float64; the matrix and images in float32.
 

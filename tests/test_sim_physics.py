@@ -109,6 +109,23 @@ def test_render_keeps_the_energy_of_a_small_sun(vga_lens) -> None:  # type: igno
         assert got == pytest.approx(float(disc_energy(np.deg2rad(0.27), [1.0])[0]), rel=0.01)
 
 
+@pytest.mark.parametrize("eq_height", [256, 512])
+def test_every_equirect_pixel_of_the_upper_hemisphere_reaches_the_sensor_whole(vga_lens, eq_height: int) -> None:  # type: ignore[no-untyped-def]
+    """A sun of one equirect pixel, anywhere above the horizon, keeps its energy: each column of
+    the render matrix, weighted by the sensor pixels' solid angles, is the equirect pixel's exact
+    solid angle. (Sampled from the sensor's side alone, the matrix lost 1% of a sun at 50 deg and
+    all of some pixels near the zenith: ratio percentiles 0.1 / 99.9% were 0 and 2.1.)"""
+    import scipy.sparse as sp
+
+    m = vga_lens.render_matrix(eq_height)
+    a = sp.csr_matrix((m.data, m.indices, m.indptr), shape=m.shape)
+    got = (a.T @ vga_lens.pixel_solid_angle().ravel()).reshape(eq_height, 2 * eq_height)[: eq_height // 2]
+    exact = equirect_row_solid_angle(eq_height)[: eq_height // 2, None]
+    err = np.abs(got / exact - 1.0)
+    assert np.percentile(err, 99.9) <= 0.005, np.percentile(err, [50, 99, 99.9])
+    assert err.max() <= 0.025, err.max()
+
+
 def test_pixel_solid_angle_matches_the_lens_jacobian(vga_lens) -> None:  # type: ignore[no-untyped-def]
     """Pixel solid angles: 1/f^2 on the axis; the upper hemisphere (1 on theta < 90 deg) sums to 2 pi."""
     up = np.zeros((512, 1024, 3), np.float32)
