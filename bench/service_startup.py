@@ -18,6 +18,7 @@ on the WebSocket minus the moment the camera is back, with the first burst's cap
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import shutil
@@ -27,10 +28,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["exec_to_lights", "reconnect_latency", "start_serve", "startup_summary", "stop_service", "wait_for_api",
+__all__ = ["exec_to_lights", "in_process_service", "reconnect_latency", "start_serve", "startup_summary", "stop_service", "wait_for_api",
            "write_config"]
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -133,8 +135,11 @@ def startup_summary(reps_warm: int, reps_cold: int, scene: str = "lebombo") -> d
 
 
 # ---- reconnect ----------------------------------------------------------------------------------
-async def _reconnect_once(state: Path, outage_s: float) -> dict[str, Any]:
-    import aiohttp
+@contextlib.asynccontextmanager
+async def in_process_service(state: Path, scene: str, fps: float, probe_id: str) -> AsyncIterator[tuple[str, Any]]:
+    """The service in this process on ``127.0.0.1`` (the real app, pipeline and simulator, no
+    mDNS, 256 lights, the default reconnect backoff, as ``lightprobe serve``): yields its URL and
+    its :class:`lightprobe.device.service.state.ServiceState` (camera, runner)."""
     from aiohttp import web
 
     from lightprobe.device.bootstrap import camera_factory, pipeline_factory
@@ -143,33 +148,38 @@ async def _reconnect_once(state: Path, outage_s: float) -> dict[str, Any]:
     from lightprobe.device.service.state import STATE
 
     cfg = ServiceConfig(path=state / "config.toml").with_patch(
-        {"mdns": {"enabled": False}, "pipeline": {"fps": 10.0, "light_count": 256}})
-    app = create_app(cfg, camera_factory("sim", "flashlight", state / "cache"),
-                     pipeline_factory(state, "benchprobe01"), token="bench-token-0123456789",
-                     probe_id="benchprobe01", port=0)  # default backoff, as `lightprobe serve`
+        {"mdns": {"enabled": False}, "pipeline": {"fps": fps, "light_count": 256}})
+    app = create_app(cfg, camera_factory("sim", scene, state / "cache"), pipeline_factory(state, probe_id),
+                     token=f"{probe_id}-token-0123456789", probe_id=probe_id, port=0)
     runner = web.AppRunner(app, shutdown_timeout=0.5, access_log=None)
     await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
-    st = app[STATE]
     try:
-        async with aiohttp.ClientSession() as c, c.ws_connect(f"http://127.0.0.1:{port}/api/v1/stream") as ws:
-            for _ in range(4):  # settle: bracket adapted, steady bursts
-                await ws.receive(timeout=300)
-            st.camera.faults.inject("disconnect", duration_s=outage_s)
-            back = time.monotonic() + outage_s  # the simulator counts from the injection
-            stale = False
-            while True:
-                d = json.loads((await ws.receive(timeout=60)).data)
-                stale = stale or d["stale"]
-                if stale and not d["stale"]:
-                    break
-            t_fresh = time.monotonic()
-            timings = dict(st.runner.result.timings)
-            exposures = list(st.runner.result.exposures)
+        site = web.TCPSite(runner, "127.0.0.1", 0)
+        await site.start()
+        port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        yield f"http://127.0.0.1:{port}", app[STATE]
     finally:
         await runner.cleanup()
+
+
+async def _reconnect_once(state: Path, outage_s: float) -> dict[str, Any]:
+    import aiohttp
+
+    async with (in_process_service(state, "flashlight", 10.0, "benchprobe01") as (url, st),
+                aiohttp.ClientSession() as c, c.ws_connect(url + "/api/v1/stream") as ws):
+        for _ in range(4):  # settle: bracket adapted, steady bursts
+            await ws.receive(timeout=300)
+        st.camera.faults.inject("disconnect", duration_s=outage_s)
+        back = time.monotonic() + outage_s  # the simulator counts from the injection
+        stale = False
+        while True:
+            d = json.loads((await ws.receive(timeout=60)).data)
+            stale = stale or d["stale"]
+            if stale and not d["stale"]:
+                break
+        t_fresh = time.monotonic()
+        timings = dict(st.runner.result.timings)
+        exposures = list(st.runner.result.exposures)
     return {"resume_s": t_fresh - back, "first_burst_capture_s": timings.get("capture"),
             "first_burst_total_s": timings.get("total"), "exposures": len(exposures),
             "loadavg_1min": os.getloadavg()[0]}

@@ -249,23 +249,9 @@ def wall_figures(rec: dict[str, Any]) -> dict[str, Any]:
 
 async def _handover(scene: str, state: Path, window_s: float) -> dict[str, Any]:
     import aiohttp
-    from aiohttp import web
 
-    from lightprobe.device.bootstrap import camera_factory, pipeline_factory
-    from lightprobe.device.service.app import create_app
-    from lightprobe.device.service.config import ServiceConfig
-    from lightprobe.device.service.state import STATE
+    from lightprobe.bench.service_startup import in_process_service
 
-    cfg = ServiceConfig(path=state / "config.toml").with_patch(
-        {"mdns": {"enabled": False}, "pipeline": {"fps": FPS, "light_count": 256}})
-    app = create_app(cfg, camera_factory("sim", scene, state / "cache"), pipeline_factory(state, "stability01"),
-                     token="stability-token-0123456789", probe_id="stability01", port=0)
-    runner = web.AppRunner(app, shutdown_timeout=0.5, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
-    st = app[STATE]
     phases: dict[str, dict[str, list[Any]]] = {}
 
     async def watch(ws: Any, name: str, seconds: float) -> None:
@@ -277,17 +263,15 @@ async def _handover(scene: str, state: Path, window_s: float) -> dict[str, Any]:
             ph["settling"].append(bool(d.get("settling", False)))
             ph["stale"].append(bool(d["stale"]))
 
-    try:
-        async with aiohttp.ClientSession() as c, c.ws_connect(f"http://127.0.0.1:{port}/api/v1/stream") as ws:
-            await watch(ws, "start", 3.0)  # first lights, the metering sweep, the balanced table
-            await watch(ws, "before", window_s)
-            st.camera.faults.inject("disconnect", duration_s=1.0)
-            await watch(ws, "reconnect", window_s)
-            async with st.runner.camera_lease(st.camera):  # what a calibration commit does
-                pass
-            await watch(ws, "reload", window_s)
-    finally:
-        await runner.cleanup()
+    async with (in_process_service(state, scene, FPS, "stability01") as (url, st),
+                aiohttp.ClientSession() as c, c.ws_connect(url + "/api/v1/stream") as ws):
+        await watch(ws, "start", 3.0)  # first lights, the metering sweep, the balanced table
+        await watch(ws, "before", window_s)
+        st.camera.faults.inject("disconnect", duration_s=1.0)
+        await watch(ws, "reconnect", window_s)
+        async with st.runner.camera_lease(st.camera):  # what a calibration commit does
+            pass
+        await watch(ws, "reload", window_s)
     return {k: {kk: np.array(vv) for kk, vv in v.items()} for k, v in phases.items()}
 
 
