@@ -1,9 +1,9 @@
 """``lightprobe bench stability``: does the published lighting of a static scene hold still?
 
 On a static scene the lighting does not change, so neither should what the probe publishes,
-from the first set on, beyond the sensor's noise. For each shared map and two synthetic sun
-scenes of our own (:func:`sun_map`: a clear sky with a sun of one map pixel, 1e5 and 1e6 times
-the sky's radiance) the pipeline runs as the service drives it (one ``Pipeline.step`` per
+from the first set on, beyond the sensor's noise. For each shared map and five synthetic sun
+scenes of our own (:func:`sun_map`: a clear sky with a sun of one map pixel, 3e4 to 1e6 times
+the sky's radiance, 12 to 85 degrees high: :data:`SUNS`) the pipeline runs as the service drives it (one ``Pipeline.step`` per
 sensor frame, 256 Q2-Tree lights, the simulator's 30 fps mode, not paced: sensor time,
 deterministic) from a cold start: the metering sweep, the coarse projection table and its
 balanced replacement, every replan of the bracket. Per frame: the published energy (luminance
@@ -49,21 +49,25 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SCENES", "figures", "handover_record", "record", "run", "sun_map", "wall_figures", "wall_record"]
+__all__ = ["SCENES", "figures", "handover_record", "record", "run", "sun_map", "sun_scene", "wall_figures", "wall_record"]
 
 # the shared maps (../shared/data/envmaps), then the synthetic suns
 SCENES = ["lebombo_1k.hdr", "rooitou_park_1k.hdr", "studio_small_03_1k.hdr", "potsdamer_platz_1k.hdr",
           "dikhololo_night_1k.hdr", "interior_blender.exr"]
-SUNS = {"sun_1e5": 1e5, "sun_1e6": 1e6}
+# (ratio to the sky's zenith, elevation in degrees, azimuth as a fraction of the map's width):
+# one map pixel of sun high, low and in between, as far as 1e6:1
+SUNS = {"sun_1e5": (1e5, 40.0, 0.25), "sun_1e6": (1e6, 40.0, 0.25), "sun_3e4_60deg": (3e4, 60.0, 0.55),
+        "sun_1e6_12deg": (1e6, 12.0, 0.7), "sun_3e5_85deg": (3e5, 85.0, 0.3)}
 FPS = 30.0
 
 
-def sun_map(path: Path, ratio: float, height: int = 256, sun: float = 2e4) -> Path:
+def sun_map(path: Path, ratio: float, height: int = 256, sun: float = 2e4, elevation_deg: float = 40.0,
+            azimuth: float = 0.25) -> Path:
     """A static sky (bright towards the horizon, a dim ground) with a sun of one map pixel at
-    40 degrees elevation, ``ratio`` x the sky's radiance at the zenith: an EXR file. The sun's
-    radiance ``sun`` is a real sun's in the shared maps' scale (rooitou_park's), which the
-    simulated sensor measures unclipped at its shortest exposure; the sky is that over
-    ``ratio``."""
+    ``elevation_deg`` above the horizon and ``azimuth`` (a fraction of the map's width) along it,
+    ``ratio`` x the sky's radiance at the zenith: an EXR file. The sun's radiance ``sun`` is a
+    real sun's in the shared maps' scale (rooitou_park's), which the simulated sensor measures
+    unclipped at its shortest exposure; the sky is that over ``ratio``."""
     from lightprobe.core.imageio import write_exr
     from lightprobe.core.sphere import equirect_directions
 
@@ -72,10 +76,16 @@ def sun_map(path: Path, ratio: float, height: int = 256, sun: float = 2e4) -> Pa
     zenith = sun / ratio
     sky = zenith * np.where(up > 0, 1.0 + 1.5 * (1.0 - up) ** 3, 0.25)[..., None] * np.array([0.55, 0.7, 1.0])
     img = sky.astype(np.float32)
-    row = round((0.5 - 40.0 / 180.0) * height)  # 40 degrees above the horizon
-    img[row, height // 2] = sun * np.array([1.0, 0.95, 0.85], np.float32)
+    row = min(max(round((0.5 - elevation_deg / 180.0) * height - 0.5), 0), height // 2 - 1)
+    img[row, int(azimuth * 2 * height) % (2 * height)] = sun * np.array([1.0, 0.95, 0.85], np.float32)
     write_exr(path, img)
     return path
+
+
+def sun_scene(name: str, directory: Path) -> str:
+    """The EXR file of one of :data:`SUNS`, written into ``directory``."""
+    ratio, elevation, azimuth = SUNS[name]
+    return str(sun_map(directory / f"{name}.exr", ratio, elevation_deg=elevation, azimuth=azimuth))
 
 
 async def _run(scene: str, frames: int, seed: int, shared_data: str | None) -> tuple[Any, dict[str, Any]]:
@@ -304,7 +314,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="lightprobe-stability-") as tmp:
         scenes = [str(Path(SHARED) / "envmaps" / f) for f in SCENES]
-        scenes += [str(sun_map(Path(tmp) / f"{name}.exr", ratio)) for name, ratio in SUNS.items()]
+        scenes += [sun_scene(name, Path(tmp)) for name in SUNS]
         for scene in scenes:
             name = Path(scene).stem.removesuffix("_1k")
             results[name] = figures(record(scene, frames))

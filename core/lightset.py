@@ -32,7 +32,8 @@ class LightSet:
     published as optional fields (e.g. ``"peaks"``, ``"ambient"``). ``stale``: the camera is
     away, these are the last good lights; ``settling``: the probe is starting and its estimate
     is still taking in its first exposures, so the lighting may be off by more than its noise
-    (only the first frames after start: a metering sweep, a fraction of a second).
+    (only the first frames after start: the metering sweep and one cycle of the bracket planned
+    from it, at most 0.8 s of sensor time).
     """
 
     directions: np.ndarray

@@ -1,6 +1,6 @@
 """A static scene's published lighting holds still, from the first set on (issue 43), in sensor
-time (deterministic): every shared map and two synthetic suns of one map pixel (1e5 and 1e6 times
-the sky), 420 frames each from a cold start (the metering sweep, the coarse projection table and
+time (deterministic): every shared map and synthetic suns of one map pixel (1e4-1e6 times the
+sky, 12-85 degrees high), 420 frames each from a cold start (the metering sweep, the coarse projection table and
 its balanced replacement, every replan), longer than a planner period: the bracket is replanned
 every cycle and keeps the brightest level of the last 10 s (300 frames), whose expiry made the
 published energy of a sun scene dip for 16 frames every ~345 frames before the planner read the
@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from lightprobe.bench.stability import SUNS, figures, record, sun_map
+from lightprobe.bench.stability import SUNS, figures, record, sun_scene
 from tests.conftest import ENVMAP_NAMES
 
 pytestmark = pytest.mark.slow
@@ -29,7 +29,7 @@ _RESULTS: dict[str, dict[str, Any]] = {}
 
 def _scene(name: str, shared_data: Path, tmp_path: Path) -> str:
     if name in SUNS:
-        return str(sun_map(tmp_path / f"{name}.exr", SUNS[name]))
+        return sun_scene(name, tmp_path)
     return str(shared_data / "envmaps" / name)
 
 
@@ -57,10 +57,10 @@ def test_the_published_energy_holds_through_a_reconnect_and_a_calibration_reload
     """The service in-process on a sun map (wall time): a 1 s camera disconnect, then the
     pipeline rebuilt from the stored calibration (what a committed calibration does). The sets
     after each are marked while they are not yet right (``stale`` while the camera is away,
-    ``settling`` through the rebuilt pipeline's metering sweep) and every other one is close to
-    the energy before (its own noise: 0.4% at most over a window; measured after the reconnect
-    0.24-0.37%, after the reload 0.43-0.96%: the rebuilt pipeline's first unmarked sets, as at a
-    cold start), the median within 0.3%."""
+    ``settling`` through the rebuilt pipeline's metering sweep and first planned cycle) and
+    every other one is within the energy's own noise of the level before (0.41% at most over a
+    window before the events; measured after the reconnect 0.22-0.34%, after the reload
+    0.19-0.27%), the median within 0.3%."""
     from lightprobe.bench.stability import handover_record
 
     res = handover_record(str(shared_data / "envmaps" / "rooitou_park_1k.hdr"), tmp_path / "state", window_s=4.0)
@@ -70,5 +70,5 @@ def test_the_published_energy_holds_through_a_reconnect_and_a_calibration_reload
         r = res[event]
         assert r["fresh_sets"] > 30, res
         assert r["stale_sets"] >= 1, res  # the gap is marked, not hidden
-        assert r["max_dev"] <= (0.01 if event == "reconnect" else 0.015), res
+        assert r["max_dev"] <= min(0.01, 2.0 * res["noise_max_dev"]), res
         assert abs(r["median_shift"]) <= 0.003, res
