@@ -74,7 +74,7 @@ def _switch_lags(cam: Any, rs: list[Any], settle: int) -> list[int | None]:
     from lightprobe.core.sphere import luminance
 
     light = cam.scene.lights[0]
-    on = [light.intensity(r.sensor_time_s) > 0 for r in rs]
+    on = [light.intensity(cam.scene_time(r.sensor_time_s)) > 0 for r in rs]
     energy = [float(luminance(r.lights.total)) for r in rs]
     lags: list[int | None] = []
     for k in range(max(settle, 1), len(rs)):
@@ -104,7 +104,7 @@ def _flashlight_lags(cam: Any, rs: list[Any], settle: int, fps: float) -> list[i
         near = dirs @ dirs[int(np.argmax(lum))] > np.cos(np.radians(8.0))
         d = (dirs[near] * lum[near, None]).sum(axis=0)
         d = d / np.linalg.norm(d)
-        ang = [float(np.degrees(np.arccos(np.clip(d @ light.direction_at(r.sensor_time_s - k / fps), -1, 1))))
+        ang = [float(np.degrees(np.arccos(np.clip(d @ light.direction_at(cam.scene_time(r.sensor_time_s) - k / fps), -1, 1))))
                for k in range(6)]
         lags.append(int(np.argmin(ang)) if min(ang) < 5.0 else None)
     return lags
@@ -125,13 +125,13 @@ def measure(scene: str, frames: int = 160, settle: int = 40, *, seed: int = 7, l
     switch_frames: set[int] = set()
     if scene == "switch":
         light = cam.scene.lights[0]
-        on = [light.intensity(r.sensor_time_s) > 0 for r in rs]
+        on = [light.intensity(cam.scene_time(r.sensor_time_s)) > 0 for r in rs]
         switch_frames = {k + d for k in range(1, len(rs)) if on[k] != on[k - 1] for d in range(2)}
     for k in range(settle, len(rs), every):
         if k in switch_frames:
             continue  # the two frames a switch may take (asserted separately)
         r = rs[k]
-        ref = ref0 if ref0 is not None else _reference(cam.truth_radiance(r.sensor_time_s), normals)
+        ref = ref0 if ref0 is not None else _reference(cam.truth_radiance(cam.scene_time(r.sensor_time_s)), normals)
         d, g = ref.error("diffuse", r.lights), ref.error("glossy", r.lights)
         diffuse.append(d)
         glossy.append(g)

@@ -32,6 +32,8 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 __all__ = ["exec_to_lights", "in_process_service", "reconnect_latency", "start_serve", "startup_summary", "stop_service", "wait_for_api",
            "write_config"]
 
@@ -252,14 +254,26 @@ async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
                 out["q2tree_status"] = r.status
             out["q2tree_first_s"] = time.monotonic() - t
         n, t0, frames = 0, time.monotonic(), set()
+        glass, probe = [], []  # capture -> received here; capture -> published by the probe
         while time.monotonic() - t0 < seconds:
             msg = await ws.receive(timeout=30)
+            received = time.time()
             if msg.type != aiohttp.WSMsgType.TEXT:
                 break
             n += 1
-            frames.add(json.loads(msg.data)["frame"])
+            d = json.loads(msg.data)
+            frames.add(d["frame"])
+            if d.get("captured") is not None and not d.get("stale"):
+                glass.append(received - d["captured"])
+                probe.append(d["timestamp"] - d["captured"])
         out["sets_per_s"] = n / (time.monotonic() - t0)
         out["distinct_frames_per_s"] = len(frames) / (time.monotonic() - t0)
+        if glass:  # glass-to-host: the middle of the newest frame's exposure -> the message here
+            out["glass_to_host_ms"] = {"p50": 1e3 * float(np.percentile(glass, 50)),
+                                       "p99": 1e3 * float(np.percentile(glass, 99)),
+                                       "max": 1e3 * float(np.max(glass)), "n": len(glass)}
+            out["capture_to_publish_ms"] = {"p50": 1e3 * float(np.percentile(probe, 50)),
+                                            "p99": 1e3 * float(np.percentile(probe, 99))}
     return out
 
 

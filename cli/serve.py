@@ -175,6 +175,9 @@ async def serve(a: argparse.Namespace) -> int:
     from lightprobe.device.service.mqtt_settings import MqttSettings
 
     mqtt = MqttSettings.from_config(cfg, a.mqtt, env)  # a bad URL or password file: exit 2 now
+    from lightprobe.device.service.osc import OscSettings
+
+    osc = OscSettings.from_config(cfg, a.osc)  # a bad target: exit 2 now
     token = await asyncio.to_thread(_token_or_error, state_dir, load_or_create_token)
     probe_id = cfg.get("probe", "id") or await asyncio.to_thread(
         stable_probe_id, "/etc/machine-id", camera_identity(a.camera, state_dir))
@@ -184,7 +187,7 @@ async def serve(a: argparse.Namespace) -> int:
     make_camera = camera_factory(a.camera, a.scene, state_dir / "cache")
     app = create_app(cfg, make_camera, pipeline_factory(state_dir, probe_id),
                      token=token, probe_id=probe_id, port=port, host=host, notifier=notifier,
-                     backoff=(a.backoff_initial, a.backoff_max), mqtt=mqtt,
+                     backoff=(a.backoff_initial, a.backoff_max), mqtt=mqtt, osc=osc,
                      view_mesh=a.view_mesh)
     guard = ConnectionGuard(max_connections=min(int(cfg.get("service", "max_connections")), raise_fd_limit()),
                             max_per_peer=int(cfg.get("service", "max_connections_per_peer")),
@@ -245,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also publish lights, SH, sensors and status to this MQTT broker, with Home "
                         "Assistant discovery (overrides [mqtt] url; password: [mqtt] password_file "
                         "or $LIGHTPROBE_MQTT_PASSWORD)")
+    p.add_argument("--osc", action="append", default=None, metavar="udp://HOST:PORT",
+                   help="also send each light set's primary light, SH, illuminance and times as OSC "
+                        "messages to this host (repeatable; replaces [osc] targets; rate: [osc] rate)")
     p.add_argument("--view-mesh", default=None, metavar="MESH.obj",
                    help="an OBJ file /view shows beside its spheres (overrides [view] mesh)")
     p.add_argument("--log-format", choices=["auto", "json", "text"], default="auto",

@@ -33,7 +33,11 @@ class LightSet:
     away, these are the last good lights; ``settling``: the probe is starting and its estimate
     is still taking in its first exposures, so the lighting may be off by more than its noise
     (only the first frames after start: the metering sweep and one cycle of the bracket planned
-    from it, at most 0.8 s of sensor time).
+    from it, at most 0.8 s of sensor time). Two times, both wall-clock seconds (Unix time):
+    ``captured``, when the light these lights show reached the sensor (the middle of the exposure
+    of the newest frame the set was made from; None for a set not made from a camera, e.g. from
+    a saved map) and ``timestamp``, when the set was made (published); ``timestamp - captured``
+    is the probe's own latency, a host's clock minus ``captured`` the lighting's age.
     """
 
     directions: np.ndarray
@@ -45,6 +49,7 @@ class LightSet:
     probe: str = ""
     frame: int = 0
     timestamp: float = field(default_factory=time.time)
+    captured: float | None = None
     stale: bool = False
     settling: bool = False
     pose: dict[str, Any] = field(
@@ -89,6 +94,7 @@ class LightSet:
             "probe": self.probe,
             "frame": int(self.frame),
             "timestamp": float(self.timestamp),
+            **({} if self.captured is None else {"captured": float(self.captured)}),
             "method": self.method,
             "unit": self.unit,
             "stale": bool(self.stale),
@@ -114,10 +120,13 @@ class LightSet:
             ids = np.array([li.get("id", -1) for li in lights], np.int64)
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"malformed light in light set: {e}", param="lights") from e
-        known = {"version", "probe", "frame", "timestamp", "method", "unit", "stale", "settling", "pose", "lights"}
+        known = {"version", "probe", "frame", "timestamp", "captured", "method", "unit", "stale", "settling", "pose",
+                 "lights"}
+        captured = d.get("captured")
         return cls(dirs, rgb, sa, ids, method=str(d.get("method", "")), unit=str(d.get("unit", "relative")),
                    probe=str(d.get("probe", "")), frame=int(d.get("frame", 0)),
-                   timestamp=float(d.get("timestamp", 0.0)), stale=bool(d.get("stale", False)),
+                   timestamp=float(d.get("timestamp", 0.0)),
+                   captured=None if captured is None else float(captured), stale=bool(d.get("stale", False)),
                    settling=bool(d.get("settling", False)),
                    pose=d.get("pose") or {"rotation": np.eye(3).tolist(), "position": [0.0, 0.0, 0.0]},
                    extra={k: v for k, v in d.items() if k not in known})

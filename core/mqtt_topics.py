@@ -11,7 +11,8 @@ Topics, under a prefix (default ``lightprobe``) and the probe id::
                               byte what GET /api/v1/lights and the WebSocket send
     lightprobe/<id>/sh        retained, QoS 0: the SH body of GET /api/v1/sh (canonical)
     lightprobe/<id>/sensors   retained, QoS 0: {"illuminance", "illuminance_unit", "cct",
-                              "elevation", "azimuth", "health", "frame", "timestamp"}
+                              "elevation", "azimuth", "health", "frame", "timestamp",
+                              "captured"} (both wall-clock seconds, as in the light set)
 
 and Home Assistant's MQTT discovery configs under ``homeassistant/<component>/lightprobe_<id>/
 <object>/config`` (retained). Topic segments are the probe id ([A-Za-z0-9_-], so never a

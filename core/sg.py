@@ -95,6 +95,7 @@ class SGLighting:
     frame: int = 0
     timestamp: float = field(default_factory=time.time)
     unit: str = "relative"
+    captured: float | None = None  # wall-clock middle of the newest frame's exposure (LightSet)
 
     def __post_init__(self) -> None:
         self.axes = np.asarray(self.axes, np.float64).reshape(-1, 3)
@@ -123,7 +124,9 @@ class SGLighting:
 
     def to_json(self) -> dict[str, Any]:
         return {"version": SG_VERSION, "kind": "sg", "probe": self.probe, "frame": int(self.frame),
-                "timestamp": float(self.timestamp), "unit": self.unit,
+                "timestamp": float(self.timestamp),
+                **({} if self.captured is None else {"captured": float(self.captured)}),
+                "unit": self.unit,
                 "lobes": [{"axis": [round(float(x), 7) for x in a], "sharpness": float(s),
                            "amplitude": [float(x) for x in m], "kind": k}
                           for a, s, m, k in zip(self.axes, self.sharpness, self.amplitude, self.kinds, strict=True)],
@@ -140,7 +143,8 @@ class SGLighting:
                      np.array([lb["amplitude"] for lb in lobes], np.float64).reshape(-1, 3),
                      [str(lb.get("kind", "residual")) for lb in lobes], list(d.get("levels", [])),
                      str(d.get("probe", "")), int(d.get("frame", 0)), float(d.get("timestamp", 0.0)),
-                     str(d.get("unit", "relative")))
+                     str(d.get("unit", "relative")),
+                     None if d.get("captured") is None else float(d["captured"]))
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"not an SG body: {e}", param="sg") from None
         if not (np.isfinite(sg.axes).all() and np.isfinite(sg.amplitude).all() and (sg.sharpness >= 0).all()):

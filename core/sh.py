@@ -268,6 +268,7 @@ class SHLighting:
     unit: str = "relative"
     stale: bool = False
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
+    captured: float | None = None  # wall-clock middle of the newest frame's exposure (LightSet)
 
     @classmethod
     def from_json(cls, d: Any) -> SHLighting:
@@ -285,6 +286,7 @@ class SHLighting:
                 raise InputError(f"not an SH body: coefficients must be 9 x 3 finite numbers, got {c.shape} "
                                  f"and {a.shape}", param="sh")
             return cls(str(d["convention"]), c, a, prim, str(d.get("probe", "")), int(d.get("frame", 0)),
-                       float(d.get("timestamp", 0.0)), str(d.get("unit", "relative")), bool(d.get("stale", False)), d)
+                       float(d.get("timestamp", 0.0)), str(d.get("unit", "relative")), bool(d.get("stale", False)), d,
+                       None if d.get("captured") is None else float(d["captured"]))
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"not an SH body: {e}", param="sh") from None

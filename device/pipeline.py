@@ -60,7 +60,7 @@ from lightprobe.core.errors import InputError
 from lightprobe.core.sphere import luminance
 from lightprobe.device.burst import ExposureSchedule, frame_peak_rate, keep_in_use
 from lightprobe.device.sampling.change import ChangeTest
-from lightprobe.drivers.base import Camera, Controls, Frame
+from lightprobe.drivers.base import Camera, Controls, Frame, exposure_middle, wall_clock
 
 if TYPE_CHECKING:
     from lightprobe.device.projection.output import OutputGeometry
@@ -141,8 +141,10 @@ class FrameResult:
     def __init__(self, *, frame: int, timestamp: float, equirect: np.ndarray, lights: Any,
                  exposures: list[float], gains: list[float], exposure_s: float, gain: float,
                  timings: dict[str, float], skipped: bool, calibration_id: str, unit: str,
-                 saturated_fraction: float, sensor_time_s: float, preview_source: Any = None) -> None:
+                 saturated_fraction: float, sensor_time_s: float, captured: float | None = None,
+                 preview_source: Any = None) -> None:
         self.frame, self.timestamp, self.equirect, self.lights = frame, timestamp, equirect, lights
+        self.captured = captured  # wall-clock middle of this frame's exposure (LightSet.captured)
         self.exposures, self.gains = exposures, gains  # the schedule in use (ascending t g)
         self.exposure_s, self.gain = exposure_s, gain  # this frame's
         self.timings, self.skipped = timings, skipped
@@ -474,6 +476,7 @@ class Pipeline:
         t2 = time.perf_counter()
         sensor_t = float(frame.meta.timestamp_s)
         now = time.time()
+        captured = wall_clock(exposure_middle(frame.meta))
         lum_w = geo.weighted_luminance(fused)
         coarse = geo.coarse_energy(lum_w)
         self._change.observe(merge.changed, merge.held)
@@ -481,10 +484,11 @@ class Pipeline:
         settling = self._settling(sensor_t)
         if skipped:
             lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False,  # type: ignore[union-attr]
-                             settling=settling)
+                             settling=settling, captured=captured)
         else:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp, lights.settling = self._frame, now, settling
+            lights.captured = captured
             self._change.sampled(coarse, lum_w, merge.held)
         t3 = time.perf_counter()
         if self._is_preview_exposure(exposure, gain):
@@ -500,7 +504,7 @@ class Pipeline:
             exposure_s=exposure, gain=gain,
             timings={"prepare": t1 - t0, "fusion": t2 - t1, "sampling": t3 - t2},
             skipped=skipped, calibration_id=self._calibration_id, unit=self.unit,
-            saturated_fraction=bounded, sensor_time_s=sensor_t,
+            saturated_fraction=bounded, sensor_time_s=sensor_t, captured=captured,
             preview_source=(lambda p=preview, g_=geo: g_.linear_frame(*p)) if preview is not None else None)
 
     def _is_preview_exposure(self, exposure: float, gain: float) -> bool:
@@ -658,7 +662,7 @@ def lights_on_demand(result: FrameResult, method: str, count: int) -> Any:
         raise InputError(f"count={count!r} must be in [1, 10000]", param="count")
     lights, _ = _useful_lights(make_sampler(method), result.equirect, int(count), 0)
     published = result.lights
-    lights.frame, lights.timestamp = result.frame, result.timestamp
+    lights.frame, lights.timestamp, lights.captured = result.frame, result.timestamp, result.captured
     lights.probe, lights.unit = published.probe, result.unit
     lights.pose = published.pose
     return lights

@@ -89,7 +89,7 @@ def primary_angles(direction: np.ndarray | list[float] | None) -> tuple[float | 
 
 
 def sensor_body(rgb: np.ndarray, unit: str, primary: Any, health: str, frame: int,
-                timestamp: float) -> dict[str, Any]:
+                timestamp: float, captured: float | None = None) -> dict[str, Any]:
     """The ``sensors`` payload from the horizontal irradiance RGB and the primary direction."""
     from lightprobe.core.sphere import LUMINANCE_WEIGHTS
 
@@ -99,4 +99,5 @@ def sensor_body(rgb: np.ndarray, unit: str, primary: Any, health: str, frame: in
     return {"version": 1, "illuminance": round(e, 6) if math.isfinite(e) else None,
             "illuminance_unit": "lx" if unit == "nit" else unit,
             "cct": None if cct is None else round(cct, 1), "elevation": elev, "azimuth": az,
-            "health": health, "frame": frame, "timestamp": timestamp}
+            "health": health, "frame": frame, "timestamp": timestamp,
+            **({} if captured is None else {"captured": float(captured)})}

@@ -7,6 +7,13 @@ protocol, so the whole service runs unchanged on any of them.
 Units at this boundary are SI: exposure times in seconds (drivers convert from 100 us units or
 microseconds), timestamps in seconds of CLOCK_MONOTONIC. Importing this module does nothing.
 
+Timestamps. ``FrameMetadata.timestamp_s`` is when the frame's exposure *started* (its first row,
+as libcamera's ``SensorTimestamp``), on CLOCK_MONOTONIC, so the light a frame shows arrived at
+``timestamp_s + exposure_s / 2`` on average (:func:`exposure_middle`) and a host can map it to
+the wall clock. Backends whose hardware stamps another instant convert (V4L2's end-of-frame
+stamps: :mod:`lightprobe.drivers.v4l2.camera`); the simulator stamps its virtual clock offset
+to CLOCK_MONOTONIC (:mod:`lightprobe.sim.camera`).
+
 Exposure latency. Real sensors apply a new exposure a few frames after it is requested. Frames
 carry the exposure the *sensor* used: when the backend reads it from per-frame metadata
 (libcamera, the simulator) ``FrameMetadata.exposure_verified`` is True; when it can only infer it
@@ -21,6 +28,7 @@ from __future__ import annotations
 import abc
 import enum
 import math
+import time
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import TYPE_CHECKING, Self
@@ -46,7 +54,9 @@ __all__ = [
     "FrameMetadata",
     "Mode",
     "PixelFormat",
+    "exposure_middle",
     "snap_exposure",
+    "wall_clock",
 ]
 
 
@@ -174,9 +184,20 @@ class Controls:
 class FrameMetadata:
     exposure_s: float  # exposure the sensor used (or the settled request, see module docs)
     gain: float
-    timestamp_s: float  # sensor timestamp, CLOCK_MONOTONIC seconds
+    timestamp_s: float  # start of the exposure, CLOCK_MONOTONIC seconds (module docstring)
     sequence: int  # increases by one per sensor frame; gaps mean dropped frames
     exposure_verified: bool = True
+
+
+def exposure_middle(meta: FrameMetadata) -> float:
+    """CLOCK_MONOTONIC seconds of the middle of the frame's exposure: when, on average, the light
+    it shows reached the sensor."""
+    return float(meta.timestamp_s) + 0.5 * float(meta.exposure_s)
+
+
+def wall_clock(monotonic_s: float) -> float:
+    """A CLOCK_MONOTONIC time as wall-clock (Unix) seconds, through the two clocks' offset now."""
+    return time.time() - time.monotonic() + float(monotonic_s)
 
 
 @dataclass(frozen=True, slots=True)

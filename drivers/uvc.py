@@ -340,7 +340,9 @@ def v4l2_controls_with_uvc_fallback(find_usb: Callable[[], usb.core.Device | Non
 
 
 class FrameSource(Protocol):
-    """Where a :class:`UvcCamera` gets pixels: (rgb uint8 (H, W, 3), sequence, monotonic s)."""
+    """Where a :class:`UvcCamera` gets pixels: (rgb uint8 (H, W, 3), sequence, CLOCK_MONOTONIC
+    seconds when the frame was complete); the camera turns the last into the protocol's start of
+    exposure (less the exposure and one frame time of readout)."""
 
     modes: tuple[Mode, ...]
     mode: Mode
@@ -430,6 +432,7 @@ class UvcCamera(Camera):
         gap = 0 if self._last_seq is None else max(0, seq - self._last_seq - 1)
         self._last_seq = seq
         d = tracker.observe(seq, frame_level(rgb, 255.0))
+        ts -= d.exposure_s + 1.0 / max(self._frames.mode.max_fps, 1e-3)  # end of frame -> start of exposure
         meta = FrameMetadata(d.exposure_s, d.gain, ts, seq, exposure_verified=False)
         extra: dict[str, object] = {"dropped": gap, "settled": d.settled, "settle_reason": d.reason}
         return Frame(rgb, meta, self._frames.mode.format, extra=extra)

@@ -163,13 +163,15 @@ class ProbeClient:
 
     async def q2tree(self, count: int | None = None) -> Q2Tree:
         """``GET /q2tree``: the probe's Q2-Tree (decoded and checked), with ``meta`` holding
-        probe, frame, unit, timestamp and stale from the reply headers."""
+        probe, frame, unit, timestamp, captured (None when not sent) and stale from the reply
+        headers."""
         params = {"count": str(count)} if count is not None else None
         body, headers, _ = await self._get("/q2tree", params)
         meta = {"probe": headers.get("X-Lightprobe-Probe", ""),
                 "frame": int(headers.get("X-Lightprobe-Frame", "0") or 0),
                 "unit": headers.get("X-Lightprobe-Unit", "relative"),
                 "timestamp": float(headers.get("X-Lightprobe-Timestamp", "0") or 0),
+                "captured": float(headers["X-Lightprobe-Captured"]) if headers.get("X-Lightprobe-Captured") else None,
                 "stale": headers.get("X-Lightprobe-Stale") == "true"}
         try:
             return decode_q2tree(body, meta)

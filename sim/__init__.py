@@ -18,7 +18,7 @@ Typical use::
         await cam.apply(Controls(exposure_s=1e-3))
         frame = await cam.capture()
     cal = cam.truth_calibration()             # fused value x cal.photometric.scale == radiance
-    truth = cam.truth_radiance(frame.meta.timestamp_s)
+    truth = cam.truth_radiance(cam.scene_time(frame.meta.timestamp_s))
 
 The simulator is its own implementation: its lens, vignetting, mounting and response are written
 from the documents (CONVENTIONS.md, NOTES.md), not imported from the probe, and its truth

@@ -13,8 +13,21 @@ stretches to fit a longer exposure; dropped frames advance it too), so with a fi
 short exposures ``t_i = i / fps``. ``apply()`` called when the next frame is ``s`` lands on frame
 ``s + k`` (``k = control_latency_frames``, default 2): frames ``s .. s + k - 1`` carry, truthfully,
 the old exposure and gain in their metadata. Sequence numbers and the clock continue across
-close/open. With ``realtime=True`` frames are paced at the frame rate (``asyncio.sleep``);
-by default they are returned as fast as they are computed.
+close/open. With ``realtime=True`` frames are paced at the frame rate (``asyncio.sleep``):
+a frame is delivered when its exposure and one frame time of readout are over, and a consumer
+that falls more than ``BUFFERS`` frames behind loses the frames it missed (sequence gaps, as a
+driver's full buffer queue drops them); by default frames are returned as fast as they are
+computed.
+
+Timestamps. ``FrameMetadata.timestamp_s`` is the start of the frame's exposure, ``epoch + t``.
+With ``realtime`` (how the service runs it) the epoch is set when the first frame after each
+``open()`` is out (not counting what the simulator spent loading its lens), so that the
+stamps are CLOCK_MONOTONIC's, as the protocol promises and as a host maps them to the wall
+clock. Unpaced, frames come as fast as they are computed, faster than the light they show
+could have: no clock's time is theirs, and the epoch is 0 (the stamps are the virtual clock,
+exactly, so runs in sensor time stay deterministic to the bit). :meth:`SimCamera.scene_time`
+maps a stamp back to the virtual time the scene and the truth functions take
+(``extra["sim_time_s"]`` carries it too).
 
 Read-ahead. Because of that latency, once frame ``s`` is out the exposure and gain of frames
 ``s + 1 .. s + k`` are already fixed (a new ``apply()`` lands at ``s + 1 + k`` at the earliest),
@@ -61,7 +74,9 @@ from .lens import SimLens, standard_lens
 from .scene import Scene, rasterize_disc
 from .sensor import SensorModel, raw_levels
 
-__all__ = ["DEFAULT_MODES", "SimCamera"]
+__all__ = ["BUFFERS", "DEFAULT_MODES", "SimCamera"]
+
+BUFFERS = 4  # realtime: frames a consumer may fall behind before the camera drops (a driver's queue)
 
 DEFAULT_MODES: tuple[Mode, ...] = (
     Mode(640, 480, PixelFormat.RGB8, 30.0),
@@ -138,7 +153,8 @@ class SimCamera(Camera):
         self._lock = asyncio.Lock()
         self._seq = 0
         self._t = 0.0
-        self._pace_origin: float | None = None
+        self._epoch = 0.0  # CLOCK_MONOTONIC of virtual time 0 when realtime (module docstring)
+        self._clocked = False
         self._reset_controls()
 
     # -- protocol ---------------------------------------------------------------------------------
@@ -153,7 +169,7 @@ class SimCamera(Camera):
             raise CameraUnavailable("simulated camera is unplugged", device=self.name)
         if not self._open:
             self._reset_controls()
-            self._pace_origin = None
+            self._clocked = False  # realtime: the epoch is set when the first frame is out
             # load the sensor model's compiled kernels now (a driver is loaded before it
             # streams), so the first frame does not pay for them; off the loop (numba's first
             # call loads its CPU target: ~0.1 s)
@@ -197,6 +213,8 @@ class SimCamera(Camera):
                 self._advance(fx.drop)
             if fx.raise_kind is not None:
                 await self._raise_fault(fx.raise_kind, fx.duration_s, timeout)
+            if self.realtime and self._clocked:
+                self._drop_missed()
             seq, t = self._seq, self._t
             self._land_controls(seq)
             exposure, gain, mode = self._exposure, self._gain, self._mode
@@ -211,9 +229,13 @@ class SimCamera(Camera):
                 white = 255 if mode.format is PixelFormat.RGB8 else int(raw_levels(mode.format)[1])
                 FaultPlan.apply_hot_pixels(data, fx.hot_pixels, white)
             if self.realtime:
-                await self._pace(t, timeout)
+                done = t + self.frame_duration(exposure, mode)  # exposed and read out
+                if not self._clocked:  # the first frame after open() is out now (whatever the
+                    # simulator spent loading its lens): the stamps are the clock's from here on
+                    self._epoch, self._clocked = time.monotonic() - done, True
+                await self._pace(done, timeout)
         levels = (0.0, 255.0) if mode.format is PixelFormat.RGB8 else raw_levels(mode.format)
-        meta = FrameMetadata(exposure_s=exposure, gain=gain, timestamp_s=t, sequence=seq)
+        meta = FrameMetadata(exposure_s=exposure, gain=gain, timestamp_s=self._epoch + t, sequence=seq)
         return Frame(data, meta, mode.format, black_level=levels[0], white_level=levels[1],
                      extra={"sim_time_s": t, "scene": self._scene.name})
 
@@ -284,11 +306,22 @@ class SimCamera(Camera):
         self._unplugged_until = time.monotonic() + duration_s
         raise CameraDisconnected("simulated camera disconnected", device=self.name)
 
+    def _drop_missed(self) -> None:
+        """Realtime: the frames a consumer more than ``BUFFERS`` frames behind missed go by
+        (a driver's full queue drops them)."""
+        frame = self.frame_duration(self._exposure)
+        behind = time.monotonic() - (self._epoch + self._t + frame)
+        if behind > BUFFERS * frame:
+            self._advance(int(behind / frame) - BUFFERS + 1)
+
+    def scene_time(self, timestamp_s: float) -> float:
+        """The virtual time (the scene's and the truth functions') of a frame stamped
+        ``timestamp_s`` since the last ``open()`` (module docstring)."""
+        return float(timestamp_s) - self._epoch
+
     async def _pace(self, t: float, wait_s: float) -> None:
-        loop = asyncio.get_running_loop()
-        if self._pace_origin is None:
-            self._pace_origin = loop.time() - t
-        delay = self._pace_origin + t - loop.time()
+        """Wait until virtual time ``t`` on the clock."""
+        delay = self._epoch + t - time.monotonic()
         if delay > wait_s:
             await asyncio.sleep(wait_s)
             raise CaptureTimeout(f"no frame within {wait_s} s", device=self.name)

@@ -315,7 +315,8 @@ class SimUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
 class SimUvcFrames:
     """Frames for ``lightprobe.drivers.uvc.UvcCamera`` from a :class:`SimUvcDevice`'s sensor state.
 
-    ``fps`` paces frames (``asyncio.sleep``); timestamps are CLOCK_MONOTONIC at render time.
+    ``fps`` paces frames (``asyncio.sleep``); timestamps are CLOCK_MONOTONIC when a frame is
+    complete (rendered), as the frame source protocol asks.
     The picture is the ramp of ``lightprobe.sim.v4l2_fake.sim_scene`` through a gamma-2.2 response.
     """
 

@@ -102,22 +102,25 @@ class running_service:
 
     def __init__(self, cfg: Any, make_camera: Any = None, make_pipeline: Any = None, *,
                  backoff: tuple[float, float] = (0.1, 0.5), token: str = "test-token-0123456789",
-                 probe_id: str = "probetest0001", scene: str = SCENE) -> None:
+                 probe_id: str = "probetest0001", scene: str = SCENE, port: int | None = None,
+                 **app_options: Any) -> None:
         if make_camera is None or make_pipeline is None:
             root = Path(cfg.path).parent if cfg.path is not None else Path(tempfile.mkdtemp())
             sim_camera, sim_pipeline = sim_factories(root, probe_id, scene)
             make_camera, make_pipeline = make_camera or sim_camera, make_pipeline or sim_pipeline
         self.cfg, self.make_camera, self.make_pipeline = cfg, make_camera, make_pipeline
         self.backoff, self.token, self.probe_id = backoff, token, probe_id
+        self.app_options = app_options  # more of create_app's keywords (mqtt=, osc=, ...)
+        self.port = port  # None: a free one
 
     async def __aenter__(self) -> RunningService:
         from aiohttp import web
 
         from lightprobe.device.service.app import create_app
 
-        port = free_port()
+        port = self.port or free_port()
         app = create_app(self.cfg, self.make_camera, self.make_pipeline, token=self.token,
-                         probe_id=self.probe_id, port=port, backoff=self.backoff)
+                         probe_id=self.probe_id, port=port, backoff=self.backoff, **self.app_options)
         self._runner = web.AppRunner(app, shutdown_timeout=0.5, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", port).start()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import time
 from collections.abc import AsyncIterator, Callable
 
 import numpy as np
@@ -43,7 +44,7 @@ HIL = os.environ.get("LIGHTPROBE_HIL_CAMERA", "")
 def _sim() -> Camera:
     from lightprobe.sim.camera import SimCamera
 
-    return SimCamera(seed=1)
+    return SimCamera(seed=1, realtime=True)  # paced and stamped as a camera is
 
 
 def _uvc_sim() -> Camera:
@@ -154,6 +155,18 @@ async def test_frames_in_order_with_monotonic_timestamps(camera: Camera) -> None
         assert f.data.dtype == (np.uint8 if mode.format is PixelFormat.RGB8 else np.uint16)
         assert f.format is mode.format
         assert f.data.max() <= f.white_level
+
+
+async def test_timestamps_are_the_exposure_start_on_clock_monotonic(camera: Camera) -> None:
+    """The protocol's stamp (drivers/base.py): when the frame's exposure started, on
+    CLOCK_MONOTONIC; so it ended before the frame was delivered, and not long before (a queue
+    of a few frames)."""
+    for _ in range(4):
+        f = await camera.capture(2.0)
+        delivered = time.monotonic()
+        end = f.meta.timestamp_s + f.meta.exposure_s
+        assert end <= delivered + 1e-3, (end, delivered)
+        assert delivered - end < 1.0, (end, delivered)
 
 
 async def test_applied_exposure_is_eventually_reported(camera: Camera) -> None:

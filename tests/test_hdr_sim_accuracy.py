@@ -95,7 +95,7 @@ async def _flashlight(shared_data: Path) -> dict[str, Any]:
         exposures = planner.plan(exposure_rates(sweep.radiance, cal.response.inverse[-1]),
                                  saturated=sweep.saturated, mask=fov)
         frames = await capture_burst(cam, exposures, gain=1.0, timeout=60)
-        times = [f.meta.timestamp_s for f in frames]
+        times = [cam.scene_time(f.meta.timestamp_s) for f in frames]
         truth = cam.render_radiance_image(min(times)).max(axis=-1)  # At the reference exposure
         truth_late = cam.render_radiance_image(max(times)).max(axis=-1)
     thr = 0.2 * float(truth[fov].max())

@@ -57,6 +57,9 @@ def test_the_wheel_holds_one_top_level_package(wheel: Path) -> None:
     for folder in ("core", "cli", "device", "drivers", "sim", "calibration", "hostlink", "bench"):
         assert f"lightprobe/{folder}/__init__.py" in names, folder
     assert "lightprobe/device/service/static/index.html" in names
+    # the three.js host module, which the probe serves at /js/ from beside its own package
+    for name in ("lightprobe-three.js", "lightprobe-three.d.ts", "package.json"):
+        assert f"lightprobe/hostlink/threejs/{name}" in names, name
 
 
 def test_the_bare_install_is_the_host_library_alone(host_venv: Path) -> None:

@@ -217,8 +217,7 @@ async def test_live_view_page_updates_from_the_stream(tmp_path: Path, artifacts_
             # the probe's SH reached three.js's LightProbe, and the cube map became the environment
             sh0 = await page.evaluate("window.lightprobeView.probe.sh.coefficients[0].toArray()")
             assert max(sh0) > 0
-            await page.wait_for_function("!!window.lightprobeView.scene.children.find(o => o.material && o.material.envMap)",
-                                         timeout=60_000)
+            await page.wait_for_function("!!window.lightprobeView.scene.environment", timeout=60_000)
             await page.wait_for_function("window.lightprobeView.mesh.source === 'spot.obj'", timeout=30_000)
             mesh = await page.evaluate("window.lightprobeView.mesh.triangles")
             drawn = await page.evaluate("window.lightprobeView.scene.children"

@@ -97,7 +97,13 @@ async def test_real_pipeline_stream_flashlight_and_disconnect(tmp_path: Path, ta
         errors, azimuths = [], []
         for _ in range(8):
             d = await _next_lights(ws, within=30)
-            t_sim = cam.time_s  # virtual time just after the burst's last frame
+            received = time.time()
+            # captured: the middle of the newest frame's exposure, wall clock; before it was
+            # published, and published within a few frame times (the sensor's CLOCK_MONOTONIC
+            # stamp mapped through the clocks' offset: the simulator's light at that instant)
+            assert d["captured"] <= d["timestamp"] <= received + 0.01, d
+            assert received - d["captured"] < 0.5, (received, d["captured"])
+            t_sim = cam.scene_time(d["captured"] - (time.time() - time.monotonic()))
             truth = np.asarray(flash.direction(t_sim), np.float64)
             rgb = np.array([li["rgb"] for li in d["lights"]])
             brightest = np.array(d["lights"][int(np.argmax(rgb @ [0.2126, 0.7152, 0.0722]))]["direction"])
@@ -121,6 +127,11 @@ async def test_real_pipeline_stream_flashlight_and_disconnect(tmp_path: Path, ta
         async with c.get(s.api + "/lights") as r:
             ls = await r.json()
         assert ls["stale"] is True
+        assert ls["captured"] == stale_msg["captured"]  # the last good lights keep their capture time
+        for path in ("/sh?convention=threejs", "/sg"):  # every host body carries it too
+            async with c.get(s.api + path) as r:
+                body = await r.json()
+            assert body["captured"] <= body["timestamp"], (path, body)
         assert len(ls["lights"]) == 64
         while True:
             d = await _next_lights(ws, within=30)

@@ -67,7 +67,7 @@ async def test_protocol_conformance(shared_data: Path) -> None:
         assert f.white_level == 255.0
         assert f.meta.exposure_verified
         assert f.meta.sequence == 0
-        assert f.meta.timestamp_s == 0.0
+        assert cam.scene_time(f.meta.timestamp_s) == 0.0
         await cam.set_mode(vga(PixelFormat.RAW12))
         f = await cam.capture()
         assert f.data.dtype == np.uint16
@@ -113,14 +113,14 @@ async def test_virtual_clock_and_dropped_frames() -> None:
         for _ in range(3):
             f = await cam.capture()
             seqs.append(f.meta.sequence)
-            times.append(f.meta.timestamp_s)
+            times.append(cam.scene_time(f.meta.timestamp_s))
         cam.faults.inject("drop", count=3)
         f = await cam.capture()
         seqs.append(f.meta.sequence)
-        times.append(f.meta.timestamp_s)
+        times.append(cam.scene_time(f.meta.timestamp_s))
     assert seqs == [0, 1, 2, 6]
     assert times == pytest.approx([0, 1 / 30, 2 / 30, 6 / 30])
-    assert f.extra["sim_time_s"] == f.meta.timestamp_s
+    assert f.extra["sim_time_s"] == cam.scene_time(f.meta.timestamp_s)
 
 
 async def test_deterministic_for_a_seed(shared_data: Path) -> None:
@@ -287,7 +287,7 @@ async def test_truth_chain_recovers_radiance(fmt: PixelFormat, shared_data: Path
     vv, uu = np.mgrid[0:h, 0:w]
     vig = cal.vignetting.factor(uu, vv)[..., None]
     est = x / t_exp / vig * cal.photometric.scale
-    truth = cam.render_radiance_image(f.meta.timestamp_s)
+    truth = cam.render_radiance_image(cam.scene_time(f.meta.timestamp_s))
     ok = (f.data > 0.1 * f.white_level) & (f.data < 0.9 * f.white_level) & (truth > 0)
     ok &= (np.hypot(uu - 319.5, vv - 239.5) < 220)[..., None]
     assert ok.sum() > 50000
@@ -370,3 +370,25 @@ async def test_scene_scale_scales_truth_and_pixels() -> None:
     assert frames[1] / frames[0] == pytest.approx(4.0, rel=0.02)
     assert four.truth_radiance(0.0).mean() == pytest.approx(0.8, rel=1e-6)
     assert four.truth_calibration().photometric == one.truth_calibration().photometric
+
+
+async def test_realtime_frames_are_stamped_on_the_clock_and_a_slow_consumer_loses_frames() -> None:
+    """Paced, the stamps are CLOCK_MONOTONIC's start of exposure (a frame is delivered after its
+    exposure and readout), and a consumer more than BUFFERS frames behind gets a sequence gap, not
+    ever older frames (a driver's queue drops them)."""
+    import time
+
+    from lightprobe.sim.camera import BUFFERS
+
+    cam = SimCamera(flat_scene(), latency_frames=0, realtime=True)
+    async with cam:
+        f = await cam.capture()
+        now = time.monotonic()
+        assert f.meta.timestamp_s + f.meta.exposure_s <= now + 1e-3
+        assert now - f.meta.timestamp_s < 0.2
+        await asyncio.sleep(0.5)  # 15 frame times away
+        g = await cam.capture()
+        now = time.monotonic()
+        assert g.meta.sequence - f.meta.sequence >= 15 - BUFFERS
+        assert now - g.meta.timestamp_s <= (BUFFERS + 2) / 30
+        assert cam.scene_time(g.meta.timestamp_s) == pytest.approx(g.extra["sim_time_s"], abs=1e-9)

@@ -141,6 +141,7 @@ def gltf_environment(env: Environment, cubemap: Cubemap, image_dir: str = "envir
     doc: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": "lightprobe",
                   "extras": {"probe": env.probe, "frame": int(env.frame), "timestamp": float(env.timestamp),
+                             **({} if env.captured is None else {"captured": float(env.captured)}),
                              "unit": env.unit, "irradiance_sh": "E_i = A_l c_i, canonical basis (lightprobe docs)"}},
         "extensionsUsed": ["EXT_lights_image_based"] + (["KHR_lights_punctual"] if punctual else []),
         "extensions": {"EXT_lights_image_based": {"lights": [ibl]}},

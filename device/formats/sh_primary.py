@@ -3,7 +3,7 @@ light, in any host's convention (``GET /api/v1/sh``, the stream's ``sh`` subscri
 
 JSON (version 1)::
 
-    {"version": 1, "probe": ..., "frame": ..., "timestamp": ..., "unit": "relative",
+    {"version": 1, "probe": ..., "frame": ..., "timestamp": ..., "captured": ..., "unit": "relative",
      "convention": "threejs", "order": 2,
      "coefficients": [[r, g, b] x 9],          # all light
      "ambient_coefficients": [[r, g, b] x 9],  # without the primary light
@@ -49,6 +49,7 @@ class Environment:
     unit: str = "relative"
     probe: str = ""
     pose: dict[str, Any] | None = None
+    captured: float | None = None  # wall-clock middle of the newest frame's exposure (LightSet)
 
     def to_json(self, convention: str = "canonical") -> dict[str, Any]:
         coeffs = to_convention(self.coefficients, convention)  # validates the name
@@ -60,7 +61,9 @@ class Environment:
                                  for x in direction_to_convention(self.primary.direction, convention)]
         body: dict[str, Any] = {
             "version": SH_VERSION, "kind": "sh", "probe": self.probe, "frame": int(self.frame),
-            "timestamp": float(self.timestamp), "unit": self.unit, "convention": convention, "order": 2,
+            "timestamp": float(self.timestamp),
+            **({} if self.captured is None else {"captured": float(self.captured)}),
+            "unit": self.unit, "convention": convention, "order": 2,
             "coefficients": _rows(coeffs), "ambient_coefficients": _rows(amb), "primary_light": prim}
         if self.pose is not None:
             body["pose"] = self.pose

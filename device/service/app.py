@@ -29,7 +29,7 @@ from lightprobe.device.service.config import ServiceConfig
 from lightprobe.device.service.errors import ApiError, Handler, error_middleware
 from lightprobe.device.service.notify import Notifier
 from lightprobe.device.service.runner import PipelineLike, Runner
-from lightprobe.device.service.state import HOST, MQTT, PORT, STATE, VIEW_MESH, ServiceState
+from lightprobe.device.service.state import HOST, MQTT, OSC, PORT, STATE, VIEW_MESH, ServiceState
 from lightprobe.device.service.viewmesh import load_view_mesh
 
 __all__ = ["create_app"]
@@ -313,6 +313,24 @@ async def _mqtt_ctx(app: web.Application) -> AsyncIterator[None]:
         st.mqtt = None
 
 
+async def _osc_ctx(app: web.Application) -> AsyncIterator[None]:
+    """Send each set over OSC, if targets are configured (a task: never holds up the server)."""
+    st = app[STATE]
+    settings = app[OSC]
+    if settings is None:
+        yield
+        return
+    from lightprobe.device.service.osc import OscSender
+
+    sender = st.osc = OscSender(st, settings)
+    sender.start()
+    try:
+        yield
+    finally:
+        await sender.stop()
+        st.osc = None
+
+
 async def _notify_ctx(app: web.Application) -> AsyncIterator[None]:
     st = app[STATE]
     task = None
@@ -376,13 +394,14 @@ async def _watchdog(st: ServiceState, interval: float, host: str, port: int) -> 
 def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline: PipelineFactory, *,
                token: str, probe_id: str, port: int | None = None, host: str | None = None,
                notifier: Notifier | None = None,
-               backoff: tuple[float, float] = (0.5, 1.0), mqtt: Any = None,
+               backoff: tuple[float, float] = (0.5, 1.0), mqtt: Any = None, osc: Any = None,
                view_mesh: str | None = None) -> web.Application:
     """Build the service. ``make_camera()`` returns an unopened camera; ``make_pipeline(camera,
     config)`` a pipeline over it; if the factory also has ``reconfigure(pipeline, config)`` a
     sampler or light-count change is applied in place, else the pipeline is rebuilt. ``port`` and
     ``host`` are where the API listens (defaults from ``[service]``), for mDNS. ``mqtt`` is a
-    :class:`lightprobe.device.service.mqtt.MqttSettings` to publish to a broker (``None``: off); ``view_mesh``
+    :class:`lightprobe.device.service.mqtt.MqttSettings` to publish to a broker (``None``: off); ``osc``
+    a :class:`lightprobe.device.service.osc.OscSettings` to send to OSC hosts (``None``: off); ``view_mesh``
     an OBJ file for ``/view`` (``None``: ``[view] mesh``)."""
     from lightprobe.device.service.routes import calibration, environment, probe, q2tree
 
@@ -393,6 +412,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     app[PORT] = int(port if port is not None else config.get("service", "port"))
     app[HOST] = str(host if host is not None else config.get("service", "host"))
     app[MQTT] = mqtt
+    app[OSC] = osc
     mesh = str(config.get("view", "mesh")) if view_mesh is None else view_mesh
     # a bad file stops the start with an error naming it (exit 2), not a blank view later
     app[VIEW_MESH] = load_view_mesh(mesh, "view.mesh" if view_mesh is None else "--view-mesh") if mesh else None
@@ -412,6 +432,6 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     q2tree.add_routes(app)  # GET /api/v1/q2tree (binary tree for host-side merging)
     environment.add_routes(app, static)  # SH, cubemaps, glTF / USD, the live three.js view
     calibration.add_routes(app, getattr(make_pipeline, "state_dir", None), static)  # live calibration
-    app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _mqtt_ctx, _notify_ctx])
+    app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _mqtt_ctx, _osc_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)
     return app

@@ -1,6 +1,6 @@
 """Service configuration: a TOML file of flat tables, with defaults, validation and atomic writes.
 
-The file has six tables (every key optional; missing keys take the defaults below)::
+The file has seven tables (every key optional; missing keys take the defaults below)::
 
     [service]   host, port, require_token_for_reads, public_images, allowed_hosts, cors_origins,
                 client_max_size, ws_send_timeout, max_connections, max_connections_per_peer,
@@ -10,6 +10,7 @@ The file has six tables (every key optional; missing keys take the defaults belo
     [mdns]      enabled, interfaces
     [mqtt]      url, username, password_file, tls, ca_file, keepalive, topic_prefix, lights_rate,
                 sh_rate, sensors_rate, status_interval, discovery, discovery_prefix
+    [osc]       targets, rate
     [view]      mesh
 
 Reading uses :mod:`tomllib`; writing is our own small serialiser for flat tables of strings,
@@ -139,6 +140,12 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
         "discovery_prefix": (str, "homeassistant", "topic levels of [A-Za-z0-9_-] separated by '/'",
                              lambda v: _is_prefix(v)),
     },
+    # OSC to hosts (lightprobe.device.service.osc); off while targets is empty
+    "osc": {
+        "targets": (list, [], "a list of udp://HOST:PORT (empty = off)",
+                    lambda v: len(v) <= 16 and all(isinstance(u, str) and _is_osc_target(u) for u in v)),
+        "rate": (float, 0.0, "light sets per second at most, in [0, 120] (0 = every set)", in_range(0.0, 120.0)),
+    },
     "view": {
         "mesh": (str, "", "an OBJ file /view shows beside its spheres (empty = a torus knot)",
                  lambda v: len(v) <= 4096 and v.isprintable()),
@@ -151,6 +158,16 @@ def _is_broker(v: str) -> bool:
 
     try:
         parse_broker_url(v, "mqtt.url")
+    except InputError:
+        return False
+    return True
+
+
+def _is_osc_target(v: str) -> bool:
+    from lightprobe.device.service.osc import parse_osc_target
+
+    try:
+        parse_osc_target(v)
     except InputError:
         return False
     return True
@@ -173,7 +190,7 @@ RESTART_KEYS = {("service", "host"), ("service", "port"), ("service", "client_ma
                 ("service", "header_timeout"), ("service", "body_timeout"), ("service", "keepalive_timeout"),
                 ("mdns", "enabled"), ("mdns", "interfaces"), ("pipeline", "equirect_height"),
                 ("pipeline", "nside"), ("pipeline", "max_exposures"), ("view", "mesh")} \
-    | {("mqtt", k) for k in SCHEMA["mqtt"]}
+    | {("mqtt", k) for k in SCHEMA["mqtt"]} | {("osc", k) for k in SCHEMA["osc"]}
 
 
 def _defaults() -> dict[str, dict[str, Any]]:

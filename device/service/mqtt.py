@@ -96,7 +96,7 @@ class ServiceSource:
         env = await self.st.runner.environment()
         prim = env.primary.direction if env is not None and env.primary is not None else None
         return sensor_body(rgb, self.unit(), prim, self.st.runner.status()["health"],
-                           int(lights.frame), float(lights.timestamp))
+                           int(lights.frame), float(lights.timestamp), lights.captured)
 
 
 # ---- the publisher --------------------------------------------------------------------------------

@@ -38,7 +38,7 @@ def sg_body(st: ServiceState) -> bytes | None:
     if r is None:
         return None
     sg = fit_sg(np.asarray(r.equirect), probe=st.probe_id, frame=int(r.frame), timestamp=float(r.timestamp),
-                unit=str(getattr(r, "unit", "relative")))
+                unit=str(getattr(r, "unit", "relative")), captured=getattr(r, "captured", None))
     body = sg.to_json()
     body["stale"] = st.runner.stale
     if getattr(r.lights, "pose", None):      # as beside a light set: hosts place the lobes in the room

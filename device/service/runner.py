@@ -109,7 +109,8 @@ def _environment(estimator: Any, result: Any, lights: LightSet) -> Any:
         return None
     try:
         return estimator.estimate(equirect, frame=int(lights.frame), timestamp=float(lights.timestamp),
-                                  unit=str(lights.unit), probe=str(lights.probe), pose=lights.pose)
+                                  captured=lights.captured, unit=str(lights.unit), probe=str(lights.probe),
+                                  pose=lights.pose)
     except Exception:
         log.exception("SH / primary light estimate failed for frame %s", lights.frame)
         return None
@@ -128,6 +129,8 @@ class Runner:
         self.config = config
         self.backoff_initial, self.backoff_max = backoff_initial, backoff_max
         self.hub = FrameHub()
+        # called with (lights, result) on every published set, in order (the OSC sender)
+        self.listeners: list[Callable[[LightSet, Any], None]] = []
         self.pipeline: PipelineLike | None = None
         self.camera_state = "starting"
         self.last_error: str | None = None
@@ -284,13 +287,23 @@ class Runner:
         self.last_progress = self.last_activity = now
         self.cache.clear()
         await self.hub.publish(payload)
+        self._tell(lights, result)
 
-    async def environment(self) -> Any:
+    def _tell(self, lights: LightSet, result: Any) -> None:
+        for listener in list(self.listeners):
+            try:
+                listener(lights, result)
+            except Exception:  # a listener's fault is its own
+                log.exception("light-set listener failed")
+
+    async def environment(self, result: Any = None, lights: LightSet | None = None) -> Any:
         """The latest frame's SH + primary light (``lightprobe.device.formats.sh_primary.Environment``), or
-        ``None`` before the first frame. Computed when first asked for each frame (in a worker
+        ``None`` before the first frame; or of a given published ``result`` and its ``lights``
+        (a listener's, which may be a frame behind). Computed when first asked for each frame (in a worker
         thread), so a probe nobody asks for SH spends nothing on it; the estimator compares each
         map with the last one it saw, so the update stays incremental whatever frames it skips."""
-        result, lights = self.result, self.lights
+        if result is None or lights is None:
+            result, lights = self.result, self.lights
         if result is None or lights is None:
             return None
         env = self._env_cache
@@ -315,6 +328,7 @@ class Runner:
             text, payload = await asyncio.to_thread(_encode, lights)
             self.lights, self.lights_text, self.stale = lights, text, True
             await self.hub.publish(payload)
+            self._tell(lights, self.result)
         else:
             self.stale = True
 

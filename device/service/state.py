@@ -92,6 +92,7 @@ class ServiceState:
     saved: ServiceConfig | None = None  # the config as saved (restart-only keys included), if it differs
     guard: Any = None  # lightprobe.device.service.connection_limits.ConnectionGuard of the listening socket, if any
     mqtt: Any = None  # lightprobe.device.service.mqtt.MqttPublisher while publishing to a broker
+    osc: Any = None  # lightprobe.device.service.osc.OscSender while sending to OSC hosts
     _camera_lock: threading.Lock = field(default_factory=threading.Lock)
     _camera_error: Exception | None = None
 
@@ -126,4 +127,5 @@ STATE: web.AppKey[ServiceState] = web.AppKey("lightprobe_state", ServiceState)
 PORT: web.AppKey[int] = web.AppKey("lightprobe_port", int)
 HOST: web.AppKey[str] = web.AppKey("lightprobe_host", str)
 MQTT: web.AppKey[Any] = web.AppKey("lightprobe_mqtt", object)  # MqttSettings or None
+OSC: web.AppKey[Any] = web.AppKey("lightprobe_osc", object)  # OscSettings or None
 VIEW_MESH: web.AppKey[ViewMesh | None] = web.AppKey("lightprobe_view_mesh")

@@ -8,7 +8,10 @@ the event loop only waits on the fd with ``loop.add_reader`` (the node is non-bl
 DQBUF answers EAGAIN when no buffer is ready).
 
 Frames: timestamps are the buffer's CLOCK_MONOTONIC time when ``flags & 0xE000 == 0x2000``
-(otherwise the dequeue time, marked ``extra["timestamp_source"] = "dequeue"``); a jump in the
+(otherwise the dequeue time, marked ``extra["timestamp_source"] = "dequeue"``), turned into the
+protocol's start of exposure: a start-of-exposure stamp (``V4L2_BUF_FLAG_TSTAMP_SRC_SOE``, as
+uvcvideo gives) as it is, an end-of-frame or dequeue stamp less the exposure and one frame
+time of readout (``extra["timestamp_source"]`` says which: "soe", "eof", "dequeue"); a jump in the
 buffer sequence counts dropped frames (``extra["dropped"]``, running total in ``dropped_frames``).
 V4L2 has no per-frame exposure: ``exposure_verified`` is always False and a frame reports a new
 exposure only once :class:`lightprobe.drivers.v4l2.settle.SettleTracker` says it has settled (frame-count
@@ -391,6 +394,10 @@ class V4L2Camera(Camera):
         extra: dict[str, object] = {"pixelformat": S.fourcc_str(self._fmt[2])}
         if ts is None:  # not a monotonic buffer timestamp: use the dequeue time
             ts, extra["timestamp_source"] = time.monotonic(), "dequeue"
+        elif flags & S.V4L2_BUF_FLAG_TSTAMP_SRC_MASK == S.V4L2_BUF_FLAG_TSTAMP_SRC_SOE:
+            extra["timestamp_source"] = "soe"
+        else:
+            extra["timestamp_source"] = "eof"
         gap = 0 if self._last_seq is None else max(0, seq - self._last_seq - 1)
         self._last_seq = seq
         self.dropped_frames += gap
@@ -402,6 +409,9 @@ class V4L2Camera(Camera):
         extra["settled"], extra["settle_reason"] = d.settled, d.reason
         if d.reason == "timeout":
             log.warning("%s: exposure %.6g s accepted without a brightness step", self.name, d.exposure_s)
+        if extra["timestamp_source"] != "soe":  # the frame ended (or was dequeued) then: its
+            # exposure started the exposure and one frame's readout before (the protocol's stamp)
+            ts -= d.exposure_s + 1.0 / max(self.mode.max_fps, 1e-3)
         meta = FrameMetadata(exposure_s=d.exposure_s, gain=d.gain, timestamp_s=ts, sequence=seq,
                              exposure_verified=False)  # fmt: skip
         return Frame(data=rgb, meta=meta, format=fmt, white_level=white, extra=extra)

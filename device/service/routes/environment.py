@@ -6,7 +6,10 @@
   ``GET cubemap/{px,nx,py,ny,pz,nz}.exr?mip=m`` its faces as float32 EXR;
 - ``GET environment.gltf`` (+ ``environment/*.png``) and ``GET environment.usda`` (+ the latlong
   EXR files beside it): scene files with the probe's pose applied;
-- ``GET /view``: a live three.js view lit by all of it.
+- ``GET /view``: a live three.js view lit by all of it, made with the three.js host module;
+- ``GET /js/lightprobe-three.js`` (+ ``.d.ts``) and ``GET /js/three.module.min.js``: that module
+  (``hostlink/threejs``, the host library's, which the probe serves so a page on the LAN imports
+  it from the unit) and the three.js it was tested with, open to every origin (code, no data).
 
 The SH and primary light are computed when asked, once per frame (``Runner.environment``). Cubemaps and
 scene files are built on request in a worker thread and kept until the *lighting* changes (keyed
@@ -33,7 +36,12 @@ from lightprobe.device.service.payloads import sg_payload
 from lightprobe.device.service.routes.probe import check_query, static_handler
 from lightprobe.device.service.state import STATE, VIEW_MESH, ServiceState
 
-__all__ = ["add_routes"]
+__all__ = ["HOST_JS", "add_routes"]
+
+# the three.js host module (hostlink/threejs): beside this package in the repository and the
+# wheel alike (lightprobe/device/service/routes -> lightprobe/hostlink/threejs); a file the probe
+# serves, not code it imports
+HOST_JS = Path(__file__).resolve().parents[3] / "hostlink" / "threejs"
 
 API = "/api/v1"
 MAX_SIZE = 128
@@ -273,6 +281,20 @@ async def view_mesh(request: web.Request) -> web.Response:
                                  "X-Mesh-Triangles": str(mesh.triangles)})
 
 
+def _module_file(path: Path) -> Any:
+    ctype = "text/javascript" if path.suffix == ".js" else "application/typescript"
+    present = path.is_file()  # shipped with the package: looked for once
+
+    async def handler(request: web.Request) -> web.StreamResponse:
+        if not present:
+            raise web.HTTPNotFound()
+        # any page may import it (module scripts are fetched with CORS); no credentials, no data
+        return web.FileResponse(path, headers={"Content-Type": ctype, "Access-Control-Allow-Origin": "*",
+                                               "Cache-Control": "no-cache"})
+
+    return handler
+
+
 def add_routes(app: web.Application, static_dir: Path) -> None:
     app[CACHE] = _LightingCache()
     r = app.router
@@ -286,4 +308,8 @@ def add_routes(app: web.Application, static_dir: Path) -> None:
     for name in ("environment_latlong.exr", "environment_ambient_latlong.exr"):
         r.add_get(f"{API}/{name}", _latlong(name))
     r.add_get("/view", static_handler(static_dir, "view.html"))
+    js = {"lightprobe-three.js": HOST_JS / "lightprobe-three.js", "lightprobe-three.d.ts": HOST_JS / "lightprobe-three.d.ts",
+          "three.module.min.js": static_dir / "vendor" / "three.module.min.js"}
+    for name, path in js.items():
+        r.add_get(f"/js/{name}", _module_file(path))
     r.add_get("/view/mesh.obj", view_mesh)  # its files: routes.probe.STATIC_FILES

@@ -100,6 +100,7 @@ async def status(request: web.Request) -> web.Response:
         "mdns": {"advertised": st.advertiser.registered_names if st.advertiser is not None else []},
         "connections": st.guard.stats() if st.guard is not None else None,
         "mqtt": st.mqtt.stats() if st.mqtt is not None else None,
+        "osc": st.osc.stats() if st.osc is not None else None,
         "pending_restart": sorted(f"{t}.{k}" for t, kv in st.pending.items() for k in kv),
     })
     return web.json_response(body)
@@ -133,6 +134,7 @@ async def probe_exr(request: web.Request) -> web.Response:
     st = request.app[STATE]
     r = _current(st)
     meta = {"unit": str(r.unit), "probe": st.probe_id, "timestamp": repr(float(r.timestamp)),
+            **({} if getattr(r, "captured", None) is None else {"captured": repr(float(r.captured))}),
             "calibration_id": str(r.calibration_id), "frame": str(int(r.frame)),
             "frame_convention": "lightprobe probe frame, +y up, equirect row 0 at zenith"}
     data = await _cached(st, "exr", exr_bytes, r.equirect, meta)

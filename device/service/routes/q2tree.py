@@ -86,6 +86,8 @@ async def q2tree_handler(request: web.Request) -> web.Response:
     headers = {"X-Lightprobe-Frame": str(frame), "X-Lightprobe-Probe": st.probe_id,
                "X-Lightprobe-Unit": str(getattr(r, "unit", "relative")),
                "X-Lightprobe-Timestamp": repr(float(getattr(r, "timestamp", 0.0))),
+               **({} if getattr(r, "captured", None) is None
+                  else {"X-Lightprobe-Captured": repr(float(r.captured))}),
                "X-Lightprobe-Stale": "true" if st.runner.stale else "false"}
     return web.Response(body=data, content_type=CONTENT_TYPE, headers=headers)
 
