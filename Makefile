@@ -9,7 +9,7 @@ SCENE ?= flashlight
 # the mesh /view shows beside its spheres: the shared cow when ../shared is beside the clone
 VIEW_MESH ?= $(wildcard ../shared/data/meshes/spot.obj)
 
-.PHONY: run test lint bench clean venv
+.PHONY: run test lint bench clean venv blender-addon
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -32,8 +32,22 @@ $(NODE_TOOLS): tests/node/package.json tests/node/package-lock.json
 	cd tests/node && npm ci --silent --no-audit --no-fund
 	touch $(NODE_TOOLS)
 
-test: $(STAMP) $(NODE_TOOLS)
+BPY_VENV := build/bpy-venv/.installed
+
+# Blender as a Python module for the add-on's test: a venv of its own (bpy 4.2 pins numpy < 2)
+$(BPY_VENV):
+	$(BIN)/python -m venv --clear build/bpy-venv
+	build/bpy-venv/bin/pip install --quiet 'bpy>=4.2,<4.3'
+	touch $(BPY_VENV)
+
+test: $(STAMP) $(NODE_TOOLS) $(BPY_VENV)
 	$(BIN)/python -m pytest -q
+
+# the Blender add-on as a user installs it (Preferences > Add-ons > Install from Disk)
+blender-addon:
+	@mkdir -p dist
+	cd hostlink/blender && $(PY) -c "import pathlib, zipfile; z = zipfile.ZipFile('../../dist/lightprobe_blender-0.1.0.zip', 'w', zipfile.ZIP_DEFLATED); [z.write(f, str(f)) for f in sorted(pathlib.Path('lightprobe_blender').rglob('*')) if f.is_file() and '__pycache__' not in f.parts]"
+	@echo dist/lightprobe_blender-0.1.0.zip
 
 lint: $(STAMP)
 	$(BIN)/ruff check core cli device drivers sim calibration hostlink bench tests setup.py

@@ -254,7 +254,7 @@ async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
                 out["q2tree_status"] = r.status
             out["q2tree_first_s"] = time.monotonic() - t
         n, t0, frames = 0, time.monotonic(), set()
-        glass, probe = [], []  # capture -> received here; capture -> published by the probe
+        glass, probe, wire = [], [], []  # capture -> received here; capture -> published; published -> here
         while time.monotonic() - t0 < seconds:
             msg = await ws.receive(timeout=30)
             received = time.time()
@@ -266,6 +266,7 @@ async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
             if d.get("captured") is not None and not d.get("stale"):
                 glass.append(received - d["captured"])
                 probe.append(d["timestamp"] - d["captured"])
+                wire.append(received - d["timestamp"])
         out["sets_per_s"] = n / (time.monotonic() - t0)
         out["distinct_frames_per_s"] = len(frames) / (time.monotonic() - t0)
         if glass:  # glass-to-host: the middle of the newest frame's exposure -> the message here
@@ -274,6 +275,8 @@ async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
                                        "max": 1e3 * float(np.max(glass)), "n": len(glass)}
             out["capture_to_publish_ms"] = {"p50": 1e3 * float(np.percentile(probe, 50)),
                                             "p99": 1e3 * float(np.percentile(probe, 99))}
+            out["publish_to_host_ms"] = {"p50": 1e3 * float(np.percentile(wire, 50)),
+                                         "p99": 1e3 * float(np.percentile(wire, 99))}
     return out
 
 

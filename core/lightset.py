@@ -33,7 +33,7 @@ class LightSet:
     away, these are the last good lights; ``settling``: the probe is starting and its estimate
     is still taking in its first exposures, so the lighting may be off by more than its noise
     (only the first frames after start: the metering sweep and one cycle of the bracket planned
-    from it, at most 0.8 s of sensor time). Two times, both wall-clock seconds (Unix time):
+    from it, under a second at 30 fps). Two times, both wall-clock seconds (Unix time):
     ``captured``, when the light these lights show reached the sensor (the middle of the exposure
     of the newest frame the set was made from; None for a set not made from a camera, e.g. from
     a saved map) and ``timestamp``, when the set was made (published); ``timestamp - captured``

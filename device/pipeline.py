@@ -74,7 +74,6 @@ HISTOGRAM_EDGES_LOG2 = np.linspace(-16.0, 24.0, 65)
 PREVIEW_WIDTH = 320  # the dashboard's previews are at most this many pixels wide
 _REPLAN_S = 1.0  # replan the schedule at least this often (sensor seconds)
 _MEMORY_S = 10.0  # the shortest exposure keeps headroom for what was brightest this long ago
-_SETTLE_MAX_S = 0.8  # settling ends this long (sensor seconds) after the first frame at the latest
 _PEAK_DROP = 2.0  # ... and is lengthened only when that fell below the planned peak by this factor,
 _PEAK_RISE = 1.5  # ... shortened when it rose above it by this one
 RELEASE_AFTER_FRAMES = 150  # frames after which the start's memory is handed back (5 s at 30 fps)
@@ -208,7 +207,7 @@ class Pipeline:
         self._extra_lights = 0
         self._planned_at = -math.inf  # sensor time of the last plan
         self._first_cycle = False  # the first planned bracket's first cycle is still running
-        self._first_sensor_t: float | None = None  # sensor time of the first frame (settling's cap)
+        self.frames_drained = 0  # queued frames skipped to stay live (Camera.drain)
         self._bright: list[tuple[float, float]] = []  # (sensor time, brightest rate) history
         self._peaks: list[tuple[float, bool]] = []  # the sensor pixels' peak rates since the last plan
         self._planned_peak = 0.0  # the peak rate the bracket in use is planned for
@@ -443,6 +442,8 @@ class Pipeline:
         if caps.has_frame_metadata:
             await self.camera.apply(Controls(exposure_s=t, gain=g))
             wait = (first or self.config.capture_timeout_s) + 4 * max(c[0] for c in self._schedule.controls)
+            # live: the newest frame, not the oldest queued (every frame says what it shows)
+            self.frames_drained += await self.camera.drain()
             frame = await self.camera.capture(wait)
             self._stream_on = False
             if frame.meta.exposure_verified:
@@ -481,7 +482,7 @@ class Pipeline:
         coarse = geo.coarse_energy(lum_w)
         self._change.observe(merge.changed, merge.held)
         skipped = self._unchanged(coarse, fused)
-        settling = self._settling(sensor_t)
+        settling = self._settling()
         if skipped:
             lights = replace(self.latest.lights, frame=self._frame, timestamp=now, stale=False,  # type: ignore[union-attr]
                              settling=settling, captured=captured)
@@ -562,20 +563,16 @@ class Pipeline:
         self._schedule = ExposureSchedule(controls, hold=self._hold())
         self._planned_at = sensor_t
 
-    def _settling(self, sensor_t: float) -> bool:
+    def _settling(self) -> bool:
         """Whether the set made from this frame is marked ``settling``: through the metering
         sweep and the first cycle of the bracket planned from it, when the estimate of each
         exposure rests on one frame (a sun measured once by the sweep's shortest exposure carries
         that frame's shot noise: ~1.4% of a 3e4:1 scene's diffuse light, gone after one cycle of
-        the planned bracket averages it), and at most ``_SETTLE_MAX_S`` of sensor time after the
-        first frame: a start-up state, never a hiding place."""
+        the planned bracket averages it). A start-up state, never a hiding place: the cycle is
+        at most ``2 (max_exposures - 1)`` frames with per-frame metadata, and any replan (at the
+        latest ``_REPLAN_S`` of sensor time after the plan) ends it."""
         sched = self._schedule
         if sched is None:
-            return False
-        if self._first_sensor_t is None:
-            self._first_sensor_t = sensor_t
-        if sensor_t - self._first_sensor_t > _SETTLE_MAX_S:
-            self._first_cycle = False
             return False
         return sched.sweep or (self._first_cycle and not sched.cycle_done)
 

@@ -255,6 +255,13 @@ class Camera(abc.ABC):
         """The next frame. Raises CaptureTimeout, CameraDisconnected."""
 
     # -- optional capabilities (defaults: the camera has none) --
+    async def drain(self) -> int:
+        """Drop the frames that are complete and queued behind the newest complete one, so
+        the next :meth:`capture` returns the newest (a consumer that fell behind catches up
+        instead of reading ever older frames); returns how many were dropped (sequence gaps
+        show them too). By default the camera cannot (0): its queue is read in order."""
+        return 0
+
     def factory_calibration(self) -> Calibration | None:
         """A calibration the camera itself carries (a module's EEPROM; the simulator's ground
         truth), used only when the state directory has none. None by default."""

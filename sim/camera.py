@@ -14,7 +14,10 @@ short exposures ``t_i = i / fps``. ``apply()`` called when the next frame is ``s
 ``s + k`` (``k = control_latency_frames``, default 2): frames ``s .. s + k - 1`` carry, truthfully,
 the old exposure and gain in their metadata. Sequence numbers and the clock continue across
 close/open. With ``realtime=True`` frames are paced at the frame rate (``asyncio.sleep``):
-a frame is delivered when its exposure and one frame time of readout are over, and a consumer
+a frame is delivered when its exposure and its readout (``readout_s``, default 8 ms: a binned
+mode of a Pi camera module, e.g. the IMX708's 2x2 mode, which reads out at 120 fps) are over
+(the sensor is a global shutter: every row sees the same window, as the render does), and a
+consumer
 that falls more than ``BUFFERS`` frames behind loses the frames it missed (sequence gaps, as a
 driver's full buffer queue drops them); by default frames are returned as fast as they are
 computed.
@@ -108,6 +111,7 @@ class SimCamera(Camera):
     read_ahead : compute frames whose controls are fixed in worker threads (module docstring).
     cache_dir : keep the lens render matrices on disk there (building one takes ~1 s; the
         service passes its state cache, so a restarted simulated probe loads them).
+    readout_s : realtime: seconds from the end of a frame's exposure to its delivery.
     """
 
     name = "sim"
@@ -118,6 +122,7 @@ class SimCamera(Camera):
                  exposure_range: tuple[float, float] = (1e-5, 1.0),
                  gain_range: tuple[float, float] = (1.0, 16.0),
                  shared_data: str | os.PathLike[str] | None = None, read_ahead: bool = True,
+                 readout_s: float = 0.008,
                  cache_dir: str | os.PathLike[str] | None = None) -> None:
         if not isinstance(scene, Scene):
             from .scenarios import load_scene
@@ -131,6 +136,7 @@ class SimCamera(Camera):
         self._scene = scene
         self.seed = int(seed)
         self.realtime = bool(realtime)
+        self.readout_s = float(readout_s)
         self.sensor = sensor or SensorModel()
         self.faults = FaultPlan()
         self._board: tuple[Any, float] | None = None  # (lightprobe.sim.board.BoardSchedule, start time)
@@ -229,7 +235,7 @@ class SimCamera(Camera):
                 white = 255 if mode.format is PixelFormat.RGB8 else int(raw_levels(mode.format)[1])
                 FaultPlan.apply_hot_pixels(data, fx.hot_pixels, white)
             if self.realtime:
-                done = t + self.frame_duration(exposure, mode)  # exposed and read out
+                done = t + exposure + self.readout_s  # exposed and read out
                 if not self._clocked:  # the first frame after open() is out now (whatever the
                     # simulator spent loading its lens): the stamps are the clock's from here on
                     self._epoch, self._clocked = time.monotonic() - done, True
@@ -310,9 +316,22 @@ class SimCamera(Camera):
         """Realtime: the frames a consumer more than ``BUFFERS`` frames behind missed go by
         (a driver's full queue drops them)."""
         frame = self.frame_duration(self._exposure)
-        behind = time.monotonic() - (self._epoch + self._t + frame)
+        behind = time.monotonic() - (self._epoch + self._t + self._exposure + self.readout_s)
         if behind > BUFFERS * frame:
             self._advance(int(behind / frame) - BUFFERS + 1)
+
+    async def drain(self) -> int:
+        """Realtime: skip the complete frames behind the newest complete one (not rendered:
+        they cost what a driver's dropped buffer does). Unpaced, every frame is due at once:
+        nothing to drain."""
+        if not (self.realtime and self._clocked and self._open):
+            return 0
+        now, n = time.monotonic(), 0
+        # while the frame after the next one is complete too, the next one is not the newest
+        while self._epoch + self._t + self.frame_duration(self._exposure) + self._exposure + self.readout_s <= now:
+            self._advance(1)
+            n += 1
+        return n
 
     def scene_time(self, timestamp_s: float) -> float:
         """The virtual time (the scene's and the truth functions') of a frame stamped

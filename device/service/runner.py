@@ -95,6 +95,14 @@ def _lights_payload(lights: LightSet) -> str:
     return json.dumps(lights.to_json(), separators=(",", ":"))
 
 
+def _sensor_period(pipeline: Any) -> float:
+    """Seconds between the camera's frames (0 when unknown)."""
+    try:
+        return 1.0 / float(pipeline.camera.mode.max_fps)
+    except (AttributeError, TypeError, ValueError, ZeroDivisionError):
+        return 0.0
+
+
 def _encode(lights: LightSet) -> tuple[str, bytes]:
     """The light set as JSON text (``GET /lights``) and its UTF-8 bytes (the WebSocket fan-out)."""
     text = _lights_payload(lights)
@@ -250,7 +258,10 @@ class Runner:
                 self.camera_state, self.last_error = "running", None
                 backoff = self.backoff_initial
                 period = 1.0 / float(self.config.get("pipeline", "fps"))
-                await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
+                if period > 1.05 * _sensor_period(pipeline):
+                    # a rate below the camera's: wait (the camera paces itself otherwise, and a
+                    # wait here would only hold a delivered frame back)
+                    await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
             except asyncio.CancelledError:
                 raise
             except Exception as e:
@@ -288,6 +299,9 @@ class Runner:
         self.cache.clear()
         await self.hub.publish(payload)
         self._tell(lights, result)
+        # let the WebSocket senders the publish woke write it out before the next frame's
+        # capture and processing take the loop (glass-to-host latency)
+        await asyncio.sleep(0)
 
     def _tell(self, lights: LightSet, result: Any) -> None:
         for listener in list(self.listeners):
