@@ -16,7 +16,10 @@ Two parts.
 2. **Wall time** on this machine (:mod:`lightprobe.bench.service_startup` does the start-up part): the real
    ``lightprobe serve`` (sim camera paced at 30 fps, and ``--camera v4l2-fake``) as a user starts
    it: light sets per second on the WebSocket, first lights after exec from a fresh state dir and
-   a warm one, the first ``GET /api/v1/q2tree``, RSS after a minute (``--quick``: 15 s).
+   a warm one, the first ``GET /api/v1/q2tree``, RSS after a minute (``--quick``: 15 s), and
+   glass-to-host latency: each set's ``captured`` (the middle of its newest frame's exposure) to
+   its arrival on the WebSocket here, p50 / p99 (``glass_to_host_ms``; with the probe's own share,
+   ``captured`` -> ``timestamp``, and the rest).
 3. **Per-frame processing in remap-equivalents** (:func:`per_frame_processing`): one frame's
    fusion + projection + merge (``RollingMerge.update``, the whole per-frame HDR work) and the
    rest of the per-frame processing before sampling (``Pipeline._process`` with the sampler
