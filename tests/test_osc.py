@@ -117,6 +117,7 @@ async def test_every_address_for_every_set_with_the_probes_values(tmp_path: Any)
     window = [f for f in published if min(sent) <= f <= max(sent)]
     missed = set(window) - set(sent)
     assert len(window) > 30, (published, sent)
+    print(f"OSC: {len(window) - len(missed)} of the {len(window)} sets the WebSocket saw")
     assert len(missed) <= 0.05 * len(window), (sorted(missed), len(window))
     assert status["osc"]["targets"][0]["errors"] == 0
     assert status["osc"]["sets_sent"] >= len(sent)
