@@ -31,19 +31,8 @@ ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"
 VENDOR = Path(__file__).parents[1] / "device" / "service" / "static" / "vendor"
 W = 192
 
-PAGE = """<!doctype html><html><body>
-<script type="importmap">{"imports": {"three": "http://lp.test/three.module.min.js"}}</script>
-<script type="module">
-import * as THREE from "three";
-import { XREstimatedLight } from "http://lp.test/XREstimatedLight.js";
-const W = %(W)d;
-const renderer = new THREE.WebGLRenderer({ antialias: false });
-renderer.setSize(W, W);
-const rt = new THREE.WebGLRenderTarget(W, W, { type: THREE.FloatType });
-const camera = new THREE.OrthographicCamera(-1.05, 1.05, 1.05, -1.05, 0.1, 20);
-const sphere = new THREE.Mesh(new THREE.SphereGeometry(1, 384, 192), new THREE.MeshLambertMaterial({ color: 0xffffff }));
-
-function renderViews(scene, views) {
+# the pixels of chosen sphere points from orthographic views (``renderer``, ``rt``, ``camera``, ``W`` in scope)
+RENDER_VIEWS_JS = """function renderViews(scene, views) {
   const out = [];
   for (const v of views) {
     camera.position.set(5 * v.dir[0], 5 * v.dir[1], 5 * v.dir[2]);
@@ -57,7 +46,21 @@ function renderViews(scene, views) {
     out.push(v.pixels.map(([x, y]) => [buf[(y * W + x) * 4], buf[(y * W + x) * 4 + 1], buf[(y * W + x) * 4 + 2]]));
   }
   return out;
-}
+}"""
+
+PAGE = """<!doctype html><html><body>
+<script type="importmap">{"imports": {"three": "http://lp.test/three.module.min.js"}}</script>
+<script type="module">
+import * as THREE from "three";
+import { XREstimatedLight } from "http://lp.test/XREstimatedLight.js";
+const W = %(W)d;
+const renderer = new THREE.WebGLRenderer({ antialias: false });
+renderer.setSize(W, W);
+const rt = new THREE.WebGLRenderTarget(W, W, { type: THREE.FloatType });
+const camera = new THREE.OrthographicCamera(-1.05, 1.05, 1.05, -1.05, 0.1, 20);
+const sphere = new THREE.Mesh(new THREE.SphereGeometry(1, 384, 192), new THREE.MeshLambertMaterial({ color: 0xffffff }));
+
+%(render_views)s
 
 window.renderSH = (coeffs, views) => {
   const scene = new THREE.Scene();
@@ -163,7 +166,7 @@ async def test_threejs_renders_the_probe_sh_and_the_webxr_estimate(shared_data: 
             async def serve(route):
                 name = route.request.url.rsplit("/", 1)[-1]
                 if name == "index.html":
-                    await route.fulfill(body=PAGE % {"W": W}, content_type="text/html")
+                    await route.fulfill(body=PAGE % {"W": W, "render_views": RENDER_VIEWS_JS}, content_type="text/html")
                 else:
                     await route.fulfill(path=str(VENDOR / name), content_type="text/javascript")
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 from service_harness import running_service, service_config
-from test_host_threejs import ARGS, CHROMIUM, W, _pixel_normals, _views
+from test_host_threejs import ARGS, CHROMIUM, RENDER_VIEWS_JS, W, _pixel_normals, _views
 
 from lightprobe.core.sh import irradiance
 from lightprobe.device.sampling.metrics import fibonacci_normals
@@ -62,7 +62,7 @@ const rt = new THREE.WebGLRenderTarget(W, W, { type: THREE.FloatType });
 const scene = new THREE.Scene();
 const sphere = new THREE.Mesh(new THREE.SphereGeometry(1, 384, 192), new THREE.MeshLambertMaterial({ color: 0xffffff }));
 scene.add(sphere);
-const ortho = new THREE.OrthographicCamera(-1.05, 1.05, 1.05, -1.05, 0.1, 20);
+const camera = new THREE.OrthographicCamera(-1.05, 1.05, 1.05, -1.05, 0.1, 20);
 const probe = connectProbe("%(probe)s", { token: "%(token)s", renderer, scene });
 window.log = [];
 probe.addEventListener("update", (e) => {
@@ -74,22 +74,8 @@ probe.addEventListener("update", (e) => {
 });
 window.probe = probe;
 
-window.renderSphere = (views) => {
-  const msg = probe.message;
-  const out = [];
-  for (const v of views) {
-    ortho.position.set(5 * v.dir[0], 5 * v.dir[1], 5 * v.dir[2]);
-    ortho.up.set(v.up[0], v.up[1], v.up[2]);
-    ortho.lookAt(0, 0, 0);
-    ortho.updateMatrixWorld();
-    renderer.setRenderTarget(rt);
-    renderer.render(scene, ortho);
-    const buf = new Float32Array(W * W * 4);
-    renderer.readRenderTargetPixels(rt, 0, 0, W, W, buf);
-    out.push(v.pixels.map(([x, y]) => [buf[(y * W + x) * 4], buf[(y * W + x) * 4 + 1], buf[(y * W + x) * 4 + 2]]));
-  }
-  return { message: msg, pixels: out };
-};
+%(render_views)s
+window.renderSphere = (views) => ({ message: probe.message, pixels: renderViews(scene, views) });
 
 // the environment seen from the sphere's centre along a direction (its background, unblurred)
 window.lookAt = (d) => {
@@ -142,7 +128,7 @@ async def test_a_host_page_imports_the_module_from_the_probe_and_follows_its_lig
             page.on("pageerror", lambda e: errors.append(str(e)))
             page.on("console", lambda m: errors.append("console: " + m.text) if m.type == "error" else None)
             async with running_service(cfg, scene="switch", port=port) as s:
-                host.html = PAGE % {"probe": probe_url, "token": s.token, "W": W}
+                host.html = PAGE % {"probe": probe_url, "token": s.token, "W": W, "render_views": RENDER_VIEWS_JS}
                 await page.goto(f"{host.origin}/page.html")
                 try:
                     await page.wait_for_function("window.ready && window.probe.state === 'live' && !!window.probe.environment",
