@@ -188,7 +188,7 @@ class Pipeline:
         self._calibration_id = calibration.id  # a content hash: once, not per frame (0.4 ms)
         self.config = config or PipelineConfig()
         self.latest: FrameResult | None = None
-        self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "fps": 0.0}
+        self.stats: dict[str, Any] = {"frames": 0, "frames_skipped": 0, "frames_drained": 0, "fps": 0.0}
         self._tables: asyncio.Future[Any] | None = None
         self._sampler_warm: asyncio.Future[Any] | None = None  # (see _warm_sampler)
         self._geo: Any = None  # projection table and per-pixel constants (OutputGeometry)
@@ -616,6 +616,7 @@ class Pipeline:
         s = self.stats
         s["frames"] += 1
         s["frames_skipped"] += int(r.skipped)
+        s["frames_drained"] = self.frames_drained  # queued frames skipped to stay live
         s["last_timings"] = r.timings
         s["exposures"] = r.exposures
         now = time.monotonic()

@@ -235,11 +235,10 @@ class SimCamera(Camera):
                 white = 255 if mode.format is PixelFormat.RGB8 else int(raw_levels(mode.format)[1])
                 FaultPlan.apply_hot_pixels(data, fx.hot_pixels, white)
             if self.realtime:
-                done = t + exposure + self.readout_s  # exposed and read out
                 if not self._clocked:  # the first frame after open() is out now (whatever the
                     # simulator spent loading its lens): the stamps are the clock's from here on
-                    self._epoch, self._clocked = time.monotonic() - done, True
-                await self._pace(done, timeout)
+                    self._epoch, self._clocked = time.monotonic() - (t + exposure + self.readout_s), True
+                await self._pace(self._complete_at(t, exposure), timeout)
         levels = (0.0, 255.0) if mode.format is PixelFormat.RGB8 else raw_levels(mode.format)
         meta = FrameMetadata(exposure_s=exposure, gain=gain, timestamp_s=self._epoch + t, sequence=seq)
         return Frame(data, meta, mode.format, black_level=levels[0], white_level=levels[1],
@@ -316,7 +315,7 @@ class SimCamera(Camera):
         """Realtime: the frames a consumer more than ``BUFFERS`` frames behind missed go by
         (a driver's full queue drops them)."""
         frame = self.frame_duration(self._exposure)
-        behind = time.monotonic() - (self._epoch + self._t + self._exposure + self.readout_s)
+        behind = time.monotonic() - self._complete_at(self._t, self._exposure)
         if behind > BUFFERS * frame:
             self._advance(int(behind / frame) - BUFFERS + 1)
 
@@ -328,19 +327,24 @@ class SimCamera(Camera):
             return 0
         now, n = time.monotonic(), 0
         # while the frame after the next one is complete too, the next one is not the newest
-        while self._epoch + self._t + self.frame_duration(self._exposure) + self._exposure + self.readout_s <= now:
+        while self._complete_at(self._t + self.frame_duration(self._exposure), self._exposure) <= now:
             self._advance(1)
             n += 1
         return n
+
+    def _complete_at(self, t: float, exposure_s: float) -> float:
+        """CLOCK_MONOTONIC when the frame starting at virtual time ``t`` is exposed and read
+        out (realtime)."""
+        return self._epoch + t + exposure_s + self.readout_s
 
     def scene_time(self, timestamp_s: float) -> float:
         """The virtual time (the scene's and the truth functions') of a frame stamped
         ``timestamp_s`` since the last ``open()`` (module docstring)."""
         return float(timestamp_s) - self._epoch
 
-    async def _pace(self, t: float, wait_s: float) -> None:
-        """Wait until virtual time ``t`` on the clock."""
-        delay = self._epoch + t - time.monotonic()
+    async def _pace(self, at: float, wait_s: float) -> None:
+        """Wait until CLOCK_MONOTONIC ``at``."""
+        delay = at - time.monotonic()
         if delay > wait_s:
             await asyncio.sleep(wait_s)
             raise CaptureTimeout(f"no frame within {wait_s} s", device=self.name)
