@@ -71,13 +71,19 @@ async def _frames(scene: str, frames: int, seed: int, light_count: int, shared_d
     return cam, out
 
 
+def _when(cam: Any, r: Any) -> float:
+    """The scene time a published set shows: the middle of its newest frame's exposure (what
+    its ``captured`` says), where its truth is taken."""
+    return float(cam.scene_time(r.sensor_time_s + 0.5 * r.exposure_s))
+
+
 def _switch_lags(cam: Any, rs: list[Any], settle: int) -> list[int | None]:
     """Frames from the first frame that shows a switch to the first published energy within 5% of
     the new steady state (the median of frames 8..20 after it, while the lamp stays as it is)."""
     from lightprobe.core.sphere import luminance
 
     light = cam.scene.lights[0]
-    on = [light.intensity(cam.scene_time(r.sensor_time_s)) > 0 for r in rs]
+    on = [light.intensity(_when(cam, r)) > 0 for r in rs]
     energy = [float(luminance(r.lights.total)) for r in rs]
     lags: list[int | None] = []
     for k in range(max(settle, 1), len(rs)):
@@ -107,7 +113,7 @@ def _flashlight_lags(cam: Any, rs: list[Any], settle: int, fps: float) -> list[i
         near = dirs @ dirs[int(np.argmax(lum))] > np.cos(np.radians(8.0))
         d = (dirs[near] * lum[near, None]).sum(axis=0)
         d = d / np.linalg.norm(d)
-        ang = [float(np.degrees(np.arccos(np.clip(d @ light.direction_at(cam.scene_time(r.sensor_time_s) - k / fps), -1, 1))))
+        ang = [float(np.degrees(np.arccos(np.clip(d @ light.direction_at(_when(cam, r) - k / fps), -1, 1))))
                for k in range(6)]
         lags.append(int(np.argmin(ang)) if min(ang) < 5.0 else None)
     return lags
@@ -128,13 +134,13 @@ def measure(scene: str, frames: int = 160, settle: int = 40, *, seed: int = 7, l
     switch_frames: set[int] = set()
     if scene == "switch":
         light = cam.scene.lights[0]
-        on = [light.intensity(cam.scene_time(r.sensor_time_s)) > 0 for r in rs]
+        on = [light.intensity(_when(cam, r)) > 0 for r in rs]
         switch_frames = {k + d for k in range(1, len(rs)) if on[k] != on[k - 1] for d in range(2)}
     for k in range(settle, len(rs), every):
         if k in switch_frames:
             continue  # the two frames a switch may take (asserted separately)
         r = rs[k]
-        ref = ref0 if ref0 is not None else _reference(cam.truth_radiance(cam.scene_time(r.sensor_time_s)), normals)
+        ref = ref0 if ref0 is not None else _reference(cam.truth_radiance(_when(cam, r)), normals)
         d, g = ref.error("diffuse", r.lights), ref.error("glossy", r.lights)
         diffuse.append(d)
         glossy.append(g)

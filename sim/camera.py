@@ -7,26 +7,28 @@ sensor noise and quantisation in one compiled pass (:mod:`lightprobe.sim.sensor`
 (:mod:`lightprobe.sim.faults`). About 10 ms of CPU per VGA frame, so the simulator costs what a camera
 costs. Heavy numpy work runs in ``asyncio.to_thread``.
 
-Clock and latency. Frame ``i`` (sequence ``i``) is exposed at virtual time ``t_i``; ``t``
-advances by the frame's duration, ``max(1 / mode.max_fps, exposure)`` (a sensor's frame time
-stretches to fit a longer exposure; dropped frames advance it too), so with a fixed mode and
-short exposures ``t_i = i / fps``. ``apply()`` called when the next frame is ``s`` lands on frame
-``s + k`` (``k = control_latency_frames``, default 2): frames ``s .. s + k - 1`` carry, truthfully,
-the old exposure and gain in their metadata. Sequence numbers and the clock continue across
-close/open. With ``realtime=True`` frames are paced at the frame rate (``asyncio.sleep``):
-a frame is delivered when its exposure and its readout (``readout_s``, default 8 ms: a binned
-mode of a Pi camera module, e.g. the IMX708's 2x2 mode, which reads out at 120 fps) are over
-(the sensor is a global shutter: every row sees the same window, as the render does), and a
-consumer
-that falls more than ``BUFFERS`` frames behind loses the frames it missed (sequence gaps, as a
-driver's full buffer queue drops them); by default frames are returned as fast as they are
+Clock and latency. Frame ``i`` (sequence ``i``) occupies the virtual time ``[t_i, t_i + d_i)``,
+``d_i = max(1 / mode.max_fps, exposure)`` (a sensor's frame time stretches to fit a longer
+exposure; dropped frames advance ``t`` too), so with a fixed mode and short exposures ``t_i = i /
+fps``. Its exposure is the end of that interval, ``[t_i + d_i - exposure, t_i + d_i)``: a
+streaming sensor ends each frame's exposure at its readout, one frame time after the last one's,
+whatever the exposure (the sensor is a global shutter: every row sees the same window, as the
+render does). ``apply()`` called when the next frame is ``s`` lands on frame ``s + k`` (``k =
+control_latency_frames``, default 2): frames ``s .. s + k - 1`` carry, truthfully, the old
+exposure and gain in their metadata. Sequence numbers and the clock continue across close/open.
+With ``realtime=True`` frames are paced (``asyncio.sleep``): a frame is delivered when its
+exposure and its readout (``readout_s``, default 8 ms: a binned mode of a Pi camera module, e.g.
+the IMX708's 2x2 mode, which reads out at 120 fps) are over, at ``t_i + d_i + readout_s``, so
+frames come one frame time apart, a short exposure after a long one included; a consumer that
+falls more than ``BUFFERS`` frames behind loses the frames it missed (sequence gaps, as a
+driver's full buffer queue drops them). By default frames are returned as fast as they are
 computed.
 
-Timestamps. ``FrameMetadata.timestamp_s`` is the start of the frame's exposure, ``epoch + t``.
-With ``realtime`` (how the service runs it) the epoch is set when the first frame after each
-``open()`` is out (not counting what the simulator spent loading its lens), so that the
-stamps are CLOCK_MONOTONIC's, as the protocol promises and as a host maps them to the wall
-clock. Unpaced, frames come as fast as they are computed, faster than the light they show
+Timestamps. ``FrameMetadata.timestamp_s`` is the start of the frame's exposure, ``epoch + t_i +
+d_i - exposure``. With ``realtime`` (how the service runs it) the epoch is set when the first
+frame after each ``open()`` is out (not counting what the simulator spent loading its lens), so
+that the stamps are CLOCK_MONOTONIC's, as the protocol promises and as a host maps them to the
+wall clock. Unpaced, frames come as fast as they are computed, faster than the light they show
 could have: no clock's time is theirs, and the epoch is 0 (the stamps are the virtual clock,
 exactly, so runs in sensor time stay deterministic to the bit). :meth:`SimCamera.scene_time`
 maps a stamp back to the virtual time the scene and the truth functions take
@@ -229,7 +231,8 @@ class SimCamera(Camera):
             if ahead is not None and not fx.lens_cap:
                 data = await ahead
             else:
-                data = await asyncio.to_thread(self._make_frame, t, seq, exposure, gain, mode, fx.lens_cap)
+                data = await asyncio.to_thread(self._make_frame, self._exposure_start(t, exposure, mode), seq,
+                                               exposure, gain, mode, fx.lens_cap)
             self._read_ahead()
             if fx.hot_pixels:
                 white = 255 if mode.format is PixelFormat.RGB8 else int(raw_levels(mode.format)[1])
@@ -237,12 +240,13 @@ class SimCamera(Camera):
             if self.realtime:
                 if not self._clocked:  # the first frame after open() is out now (whatever the
                     # simulator spent loading its lens): the stamps are the clock's from here on
-                    self._epoch, self._clocked = time.monotonic() - (t + exposure + self.readout_s), True
+                    self._epoch, self._clocked = time.monotonic() - (self._complete_at(t, exposure) - self._epoch), True
                 await self._pace(self._complete_at(t, exposure), timeout)
         levels = (0.0, 255.0) if mode.format is PixelFormat.RGB8 else raw_levels(mode.format)
-        meta = FrameMetadata(exposure_s=exposure, gain=gain, timestamp_s=self._epoch + t, sequence=seq)
+        start = self._exposure_start(t, exposure, mode)
+        meta = FrameMetadata(exposure_s=exposure, gain=gain, timestamp_s=self._epoch + start, sequence=seq)
         return Frame(data, meta, mode.format, black_level=levels[0], white_level=levels[1],
-                     extra={"sim_time_s": t, "scene": self._scene.name})
+                     extra={"sim_time_s": start, "scene": self._scene.name})
 
     # -- internals --------------------------------------------------------------------------------
     def _require_open(self) -> None:
@@ -284,7 +288,8 @@ class SimCamera(Camera):
             key = (seq, t, exposure, gain, self._mode)
             if key not in self._ahead:
                 fut = asyncio.ensure_future(
-                    asyncio.to_thread(self._make_frame, t, seq, exposure, gain, self._mode, False))
+                    asyncio.to_thread(self._make_frame, self._exposure_start(t, exposure, self._mode), seq,
+                                      exposure, gain, self._mode, False))
                 fut.add_done_callback(_retrieve)
                 self._ahead[key] = fut
             seq, t = seq + 1, t + self.frame_duration(exposure)
@@ -332,10 +337,15 @@ class SimCamera(Camera):
             n += 1
         return n
 
+    def _exposure_start(self, t: float, exposure_s: float, mode: Mode) -> float:
+        """Virtual time the exposure of the frame starting at ``t`` begins: its frame's end
+        less the exposure (module docstring)."""
+        return t + self.frame_duration(exposure_s, mode) - exposure_s
+
     def _complete_at(self, t: float, exposure_s: float) -> float:
         """CLOCK_MONOTONIC when the frame starting at virtual time ``t`` is exposed and read
-        out (realtime)."""
-        return self._epoch + t + exposure_s + self.readout_s
+        out (realtime): its frame's end plus the readout."""
+        return self._epoch + t + self.frame_duration(exposure_s) + self.readout_s
 
     def scene_time(self, timestamp_s: float) -> float:
         """The virtual time (the scene's and the truth functions') of a frame stamped
@@ -353,7 +363,8 @@ class SimCamera(Camera):
 
     def _make_frame(self, t: float, seq: int, exposure: float, gain: float, mode: Mode,
                     lens_cap: bool) -> np.ndarray:
-        """Pixels of one frame (runs off the event loop): sensor-plane irradiance, then the
+        """Pixels of one frame whose exposure starts at virtual time ``t`` (runs off the event
+        loop): sensor-plane irradiance, then the
         sensor's noise and quantisation in one compiled pass (``SensorModel.expose``)."""
         lens = self.lens_for(mode)
         if lens_cap:

@@ -66,8 +66,9 @@ async def test_flashlight_power_follows_the_flashlight():
         for _ in range(12):
             r = await pipe.step()
             exposures.add((r.exposure_s, r.gain))
-            axis = cam.scene.lights[0].direction_at(cam.scene_time(r.sensor_time_s))
-            truth = cam.truth_radiance(cam.scene_time(r.sensor_time_s))
+            when = cam.scene_time(r.sensor_time_s + 0.5 * r.exposure_s)  # what `captured` says
+            axis = cam.scene.lights[0].direction_at(when)
+            truth = cam.truth_radiance(when)
             dirs = equirect_directions(truth.shape[0])
             cone = dirs @ axis > np.cos(np.radians(15))
             true_power = float((luminance(truth.astype(np.float64)) * equirect_solid_angle(truth.shape[0]))[cone].sum())

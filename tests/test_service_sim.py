@@ -95,7 +95,7 @@ async def test_real_pipeline_stream_flashlight_and_disconnect(tmp_path: Path, ta
 
         # ---- the brightest light follows the flashlight --------------------------------------
         errors, azimuths = [], []
-        for _ in range(8):
+        for _ in range(16):  # 0.5 s: the flashlight turns 20 degrees
             d = await _next_lights(ws, within=30)
             received = time.time()
             # captured: the middle of the newest frame's exposure, wall clock; before it was

@@ -67,7 +67,8 @@ async def test_protocol_conformance(shared_data: Path) -> None:
         assert f.white_level == 255.0
         assert f.meta.exposure_verified
         assert f.meta.sequence == 0
-        assert cam.scene_time(f.meta.timestamp_s) == 0.0
+        # a streaming sensor's exposure ends with its frame: frame 0 is [0, 1/30)
+        assert cam.scene_time(f.meta.timestamp_s) + f.meta.exposure_s == pytest.approx(1 / 30, abs=1e-12)
         await cam.set_mode(vga(PixelFormat.RAW12))
         f = await cam.capture()
         assert f.data.dtype == np.uint16
@@ -113,13 +114,13 @@ async def test_virtual_clock_and_dropped_frames() -> None:
         for _ in range(3):
             f = await cam.capture()
             seqs.append(f.meta.sequence)
-            times.append(cam.scene_time(f.meta.timestamp_s))
+            times.append(cam.scene_time(f.meta.timestamp_s) + f.meta.exposure_s)
         cam.faults.inject("drop", count=3)
         f = await cam.capture()
         seqs.append(f.meta.sequence)
-        times.append(cam.scene_time(f.meta.timestamp_s))
+        times.append(cam.scene_time(f.meta.timestamp_s) + f.meta.exposure_s)
     assert seqs == [0, 1, 2, 6]
-    assert times == pytest.approx([0, 1 / 30, 2 / 30, 6 / 30])
+    assert times == pytest.approx([1 / 30, 2 / 30, 3 / 30, 7 / 30])  # each exposure ends with its frame
     assert f.extra["sim_time_s"] == cam.scene_time(f.meta.timestamp_s)
 
 

@@ -539,9 +539,12 @@ class RollingMerge:
 
     def update(self, key: tuple[float, float], frame: int, table: object, geo_n: np.ndarray,
                mean_gain: np.ndarray, codes: np.ndarray, lut: np.ndarray,
-               bounds: tuple[np.ndarray, np.ndarray], sharing: np.ndarray | None = None) -> np.ndarray:
+               bounds: tuple[np.ndarray, np.ndarray], sharing: np.ndarray | None = None,
+               when: float | None = None) -> np.ndarray:
         """Fuse, project and merge one frame (arguments as :func:`frame_to_map`; ``sharing``: the
-        table's :func:`lightprobe.device.projection.sample_sharing`, for the lamp tracker) into its slot;
+        table's :func:`lightprobe.device.projection.sample_sharing`, for the lamp tracker; ``when``:
+        the middle of the frame's exposure on the sensor's clock, where the tracker draws the
+        lamps it carries) into its slot;
         returns the fused map (pixels, 3) float32 (a buffer of the merge's that a later update
         overwrites: copy what must outlive the frame)."""
         s = self._slot(key, frame)
@@ -563,7 +566,7 @@ class RollingMerge:
         else:
             placed = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self.tracker is not None:
-            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach, self.den, sharing)
+            self.tracker.update(frame, self.fused, self.satnow, placed, self.move_reach, self.den, sharing, when)
         # this frame's map is the next one's ``prev``; the kernel writes every pixel of ``out``,
         # so the two buffers swap instead of copying 0.8 MB a frame
         self.prev, self.fused = self.fused, self.prev

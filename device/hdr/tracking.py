@@ -11,7 +11,10 @@ and the glossy error of those frames was 3-12% against 0.5-2.5% on the frames th
 ``relative`` of the map's brightest pixel, at most ``max_pixels``), its image above the local
 background from the last frame that measured it (no saturated pixel in or next to it), its
 luminance-weighted centre, and its velocity from the last two such frames (output pixels per
-frame). On a frame that sees the lamp's predicted footprint mostly saturated (a *censored* frame)
+second between the middles of their exposures: a streaming sensor's frames end one frame time
+apart, so a short exposure's middle is up to a frame time from a long one's, and frame counts
+would draw a lamp up to half a frame's motion off). On a frame that sees the lamp's predicted
+footprint mostly saturated (a *censored* frame)
 and whose lamp moved, the image is drawn at the predicted place (bilinear, so the energy is kept):
 the saturated pixels of the region become background plus the moved image; pixels this frame
 measures keep their measured value. A static lamp (moved less than ``min_shift`` output pixels
@@ -248,8 +251,9 @@ def _box(t: _Track, width: int) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class _Track:
     frame: int              # the last frame that measured the lamp
+    when: float             # that frame's time (``update``'s ``when``: the middle of its exposure)
     centre: np.ndarray      # (row, col) luminance-weighted, output pixels
-    velocity: np.ndarray    # (row, col) output pixels per frame
+    velocity: np.ndarray    # (row, col) output pixels per unit of ``when``
     origin: tuple[int, int]  # the image's top-left (row, col)
     image: np.ndarray       # (h, w, 3) radiance above the background
     background: np.ndarray  # (h, w, 3) the radiance around and under the lamp without it
@@ -287,7 +291,8 @@ class LampTracker:
 
     def update(self, frame: int, fused: np.ndarray, satnow: np.ndarray,
                placed: tuple[np.ndarray, np.ndarray] | None = None, reach: int = 0,
-               precision: np.ndarray | None = None, sharing: np.ndarray | None = None) -> int:
+               precision: np.ndarray | None = None, sharing: np.ndarray | None = None,
+               when: float | None = None) -> int:
         """Draw the moved lamps a censored frame cannot measure into ``fused`` (pixels, 3) in
         place, then measure the lamps this frame sees unsaturated. ``placed``: the pixels and
         amounts the merge's hold added this frame (``_place_held``); a drawn lamp takes back what
@@ -295,7 +300,11 @@ class LampTracker:
         (pixels, 3): 1 / the variance of each fused value (the merge's sums); with it, a measured
         lamp's energy is filtered over its consistent measurements (:meth:`_filter`);
         ``sharing`` (pixels,): how much more a region's sum varies than its pixels' variances
-        summed (:func:`lightprobe.device.projection.sample_sharing`; None: 1). Returns the lamps drawn."""
+        summed (:func:`lightprobe.device.projection.sample_sharing`; None: 1). ``when``: the
+        middle of this frame's exposure on the sensor's clock (seconds), where the lamp is drawn
+        and measured (None: the frame number, for frames equally spaced in time). Returns the
+        lamps drawn."""
+        when = float(frame) if when is None else float(when)
         rows = fused.shape[0] // self.width
         f = fused.reshape(rows, self.width, 3)
         sat = satnow.reshape(rows, self.width)
@@ -308,7 +317,7 @@ class LampTracker:
         for t in self.tracks:
             if frame - t.frame > self.max_age or frame <= t.frame:
                 continue
-            shift = t.velocity * (frame - t.frame)
+            shift = t.velocity * (when - t.when)
             if float(np.hypot(*shift)) < self.min_shift:
                 self._rescale(t, f, sat)
                 continue
@@ -318,7 +327,7 @@ class LampTracker:
                 dest, added = dest[~taken], added[~taken]  # taken back once
         prec = precision.reshape(rows, self.width, 3) if precision is not None else None
         share = sharing.reshape(rows, self.width) if sharing is not None else None
-        self._measure(frame, f, sat, prec, share)
+        self._measure(frame, when, f, sat, prec, share)
         return drawn
 
     # ---- the energy of a measured lamp ------------------------------------------------------
@@ -428,7 +437,7 @@ class LampTracker:
         return near
 
     # ---- measuring ------------------------------------------------------------------------
-    def _measure(self, frame: int, f: np.ndarray, sat: np.ndarray, prec: np.ndarray | None = None,
+    def _measure(self, frame: int, when: float, f: np.ndarray, sat: np.ndarray, prec: np.ndarray | None = None,
                  share: np.ndarray | None = None) -> None:
         rows, width = sat.shape
         peak, y0, y1, cols = _scan(f, sat, self._sat_age, float(self.relative))
@@ -450,13 +459,13 @@ class LampTracker:
             if status != 2 or not img.any():
                 continue  # not measured by this frame (saturated in or next to it)
             centre[1] %= width
-            old = self._match(frame, centre, width)
+            old = self._match(when, centre, width)
             vel = np.zeros(2)
             if old is not None:
                 continued.add(id(old))
-                if 0 < frame - old.frame <= self.max_age:
-                    vel = _wrap_delta(centre - old.centre, width) / (frame - old.frame)
-            track = _Track(frame, centre, vel, (y + y0 - g, (s0 + x - g) % width), img, base, foot)
+                if 0 < frame - old.frame <= self.max_age and when > old.when:
+                    vel = _wrap_delta(centre - old.centre, width) / (when - old.when)
+            track = _Track(frame, when, centre, vel, (y + y0 - g, (s0 + x - g) % width), img, base, foot)
             if y + y0 - g >= 0 and y + y0 - g + foot.shape[0] <= rows:
                 self._filter(track, old, prec, share, f)
             kept.append(track)
@@ -464,12 +473,13 @@ class LampTracker:
         kept += [t for t in self.tracks if id(t) not in continued and frame - t.frame <= self.max_age]
         self.tracks = kept
 
-    def _match(self, frame: int, centre: np.ndarray, width: int) -> _Track | None:
+    def _match(self, when: float, centre: np.ndarray, width: int) -> _Track | None:
         """The track whose predicted centre is nearest ``centre`` (columns wrap), within its reach."""
         best, dist = None, np.inf
         for t in self.tracks:
-            d = float(np.hypot(*_wrap_delta(t.centre + t.velocity * (frame - t.frame) - centre, width)))
-            reach = 4.0 + 2.0 * float(np.hypot(*t.velocity)) * max(frame - t.frame, 1)
+            dt = when - t.when
+            d = float(np.hypot(*_wrap_delta(t.centre + t.velocity * dt - centre, width)))
+            reach = 4.0 + 2.0 * float(np.hypot(*t.velocity)) * abs(dt)
             if d < reach and d < dist:
                 best, dist = t, d
         return best
