@@ -25,6 +25,8 @@ BENCHMARKS = {
     "formats": "host formats: SH + primary light irradiance error and time, GGX cube map time and error",
     "live": "live rate: light sets per sensor and wall second, change latency, error at that rate, "
             "CPU per frame, start times, RSS",
+    "replay": "recordings: the recorder's CPU per frame and dropped frames while the service runs at 30 fps; "
+              "a recording read back and the pipeline replayed on it as fast as they go",
     "stability": "a static scene's published energy over 3,600 sensor frames from a cold start: first sets, "
                  "settling, frame-to-frame change, excursion, creep, direction jitter",
 }
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         pipeline,
         relight,
         relight_sg,
+        replay,
         room,
         samplers,
         service,
@@ -55,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
 
     runners = {"pipeline": pipeline, "hdr": hdr, "samplers": samplers, "service": service, "relight": relight,
                "relight_sg": relight_sg, "room": room, "fleet": fleet, "cluster": cluster, "formats": formats,
-               "live": live, "stability": stability}
+               "live": live, "stability": stability, "replay": replay}
     result = runners[a.name].run(a.out, quick=a.quick)
     print(json.dumps({"machine": machine_info(), **result.get("summary", {})}, indent=2))
     return 0

@@ -237,8 +237,9 @@ async def serve(a: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lightprobe serve", description="Run the probe service "
                                 "(HTTP/WebSocket API under /api/v1, dashboard at /, mDNS advertising).")
-    p.add_argument("--camera", default="sim", help="auto | v4l2:/dev/videoN | libcamera | uvc[:VID:PID], or the "
-                   "simulator: sim | v4l2-fake (default sim; auto never picks the simulator)")
+    p.add_argument("--camera", default="sim", help="auto | v4l2:/dev/videoN | libcamera | uvc[:VID:PID], a "
+                   "recording: replay:FILE (paced at its rate), or the simulator: sim | v4l2-fake (default sim; "
+                   "auto never picks the simulator)")
     p.add_argument("--scene", default=None, help="simulator scene NAME or map PATH (default flashlight)")
     p.add_argument("--host", default=None, help="listen address (default from config, 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="listen port (default from config, 8080; 0 = any)")

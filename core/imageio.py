@@ -87,7 +87,8 @@ def exr_bytes(image: np.ndarray, metadata: dict[str, str] | None = None, *, half
 
 def write_exr(path: str | os.PathLike[str], image: np.ndarray, metadata: dict[str, str] | None = None,
               *, half: bool = False, atomic: bool = True) -> None:
-    """Write float RGB (H, W, 3) as OpenEXR (ZIP compression), with string metadata attributes.
+    """Write float RGB (H, W, 3), or RGBA (H, W, 4), as OpenEXR (ZIP compression), with string
+    metadata attributes.
 
     Written to a temporary file in the same folder and renamed, so readers never see a torn file.
     """
@@ -95,10 +96,10 @@ def write_exr(path: str | os.PathLike[str], image: np.ndarray, metadata: dict[st
 
     p = Path(path)
     img = np.asarray(image)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise InputError(f"{p}: image to write must be (H, W, 3), got {img.shape}", param=str(p))
+    if img.ndim != 3 or img.shape[2] not in (3, 4):
+        raise InputError(f"{p}: image to write must be (H, W, 3) or (H, W, 4), got {img.shape}", param=str(p))
     dtype = np.float16 if half else np.float32
-    channels = {c: np.ascontiguousarray(img[..., i], dtype=dtype) for i, c in enumerate("RGB")}
+    channels = {c: np.ascontiguousarray(img[..., i], dtype=dtype) for i, c in enumerate("RGBA"[: img.shape[2]])}
     header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for k, v in (metadata or {}).items():
         header[k] = str(v)

@@ -105,6 +105,16 @@ class LightSet:
         out.update(self.extra)
         return out
 
+    def comparable_json(self) -> str:
+        """The set as one JSON line without its publication time (``timestamp``): what the same
+        frames give again, bit for bit (floats written exactly), so two runs compare byte for byte
+        (``run-pipeline --jsonl``, a recording's replay)."""
+        import json
+
+        d = self.to_json()
+        d.pop("timestamp", None)
+        return json.dumps(d, separators=(",", ":"))
+
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> LightSet:
         if not isinstance(d, dict) or d.get("version") != LIGHTSET_VERSION:

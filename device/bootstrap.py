@@ -45,10 +45,16 @@ def camera_factory(spec: str, scene: str | None = None, cache_dir: Path | None =
     return make
 
 
-def open_cli_camera(spec: str, scene: str | None = None) -> Camera:
+def open_cli_camera(spec: str, scene: str | None = None, **options: Any) -> Camera:
     """An unopened camera for a command's ``--camera``: every failure is an InputError naming
-    ``--camera`` (exit 2), a missing camera included."""
+    ``--camera`` (exit 2), a missing camera included. ``options`` go to the camera (a replay's
+    ``pace``, ``loop``)."""
     try:
+        if options:
+            from lightprobe.drivers.discovery import open_camera, parse_spec
+
+            parse_spec(spec)
+            return open_camera(spec, scene=scene, **options)
         return camera_factory(spec, scene)()
     except InputError as e:
         raise InputError(f"--camera {spec}: {e}", param=e.param or "--camera") from e
@@ -62,24 +68,39 @@ class PipelineFactory:
     def __init__(self, state_dir: Path, probe_id: str) -> None:
         self.state_dir, self.probe_id = state_dir, probe_id
 
-    def pipeline_config(self, cfg: Any) -> Any:
+    def pipeline_config(self, cfg: Any, camera: Camera | None = None) -> Any:
+        """The pipeline's settings from the service config. A camera whose frames are (or will
+        be) a recording starts on its full tables (``staged_start`` off): the frame the balanced
+        table comes in on would depend on the machine's speed, and a replay must give the
+        recorded run's light sets bit for bit."""
         from lightprobe.device.pipeline import PipelineConfig
+        from lightprobe.drivers.recording import RecordingCamera
+        from lightprobe.drivers.replay import ReplayCamera
 
         return PipelineConfig(fps=cfg.get("pipeline", "fps"), sampler=cfg.get("pipeline", "sampler"),
                               light_count=cfg.get("pipeline", "light_count"),
                               max_exposures=cfg.get("pipeline", "max_exposures"),
                               equirect_height=cfg.get("pipeline", "equirect_height"),
                               nside=cfg.get("pipeline", "nside"), probe_id=self.probe_id,
-                              cache_dir=str(self.state_dir / "cache"), staged_start=True)
+                              cache_dir=str(self.state_dir / "cache"),
+                              staged_start=not isinstance(camera, (RecordingCamera, ReplayCamera)))
 
     def __call__(self, camera: Camera, cfg: Any) -> Any:
         from lightprobe.calibration.store import load_calibration
         from lightprobe.device.pipeline import Pipeline
+        from lightprobe.drivers.recording import RecordingCamera
+        from lightprobe.drivers.replay import ReplayCamera
 
-        return Pipeline(camera, load_calibration(self.state_dir, camera), self.pipeline_config(cfg))
+        # a replay runs on the calibration its recording was made with, whatever the state dir has
+        recorded = camera.factory_calibration() if isinstance(camera, ReplayCamera) else None
+        calibration = recorded if recorded is not None else load_calibration(self.state_dir, camera)
+        if isinstance(camera, RecordingCamera):  # on what the recording holds: its JSON (rounded)
+            calibration = Calibration.from_json(calibration.to_json())
+            camera.calibration_json = calibration.to_json()
+        return Pipeline(camera, calibration, self.pipeline_config(cfg, camera))
 
     def reconfigure(self, pipeline: Any, cfg: Any) -> None:
-        pipeline.reconfigure(self.pipeline_config(cfg))
+        pipeline.reconfigure(self.pipeline_config(cfg, pipeline.camera))
 
 
 def pipeline_factory(state_dir: Path, probe_id: str) -> PipelineFactory:

@@ -60,7 +60,7 @@ from lightprobe.core.errors import InputError
 from lightprobe.core.sphere import luminance
 from lightprobe.device.burst import ExposureSchedule, frame_peak_rate, keep_in_use
 from lightprobe.device.sampling.change import ChangeTest
-from lightprobe.drivers.base import Camera, Controls, Frame, exposure_middle, wall_clock
+from lightprobe.drivers.base import Camera, Controls, Frame, captured_at, exposure_middle
 
 if TYPE_CHECKING:
     from lightprobe.device.projection.output import OutputGeometry
@@ -141,9 +141,12 @@ class FrameResult:
                  exposures: list[float], gains: list[float], exposure_s: float, gain: float,
                  timings: dict[str, float], skipped: bool, calibration_id: str, unit: str,
                  saturated_fraction: float, sensor_time_s: float, captured: float | None = None,
-                 preview_source: Any = None) -> None:
+                 coverage: np.ndarray | None = None, preview_source: Any = None) -> None:
         self.frame, self.timestamp, self.equirect, self.lights = frame, timestamp, equirect, lights
         self.captured = captured  # wall-clock middle of this frame's exposure (LightSet.captured)
+        # (H, 2H) share of each map pixel the lens sees, when it does not see the whole upper
+        # hemisphere (a camera that is not a fisheye): 0 is unseen, not black. None: all seen
+        self.coverage = coverage
         self.exposures, self.gains = exposures, gains  # the schedule in use (ascending t g)
         self.exposure_s, self.gain = exposure_s, gain  # this frame's
         self.timings, self.skipped = timings, skipped
@@ -488,7 +491,7 @@ class Pipeline:
         t2 = time.perf_counter()
         sensor_t = float(frame.meta.timestamp_s)
         now = time.time()
-        captured = wall_clock(exposure_middle(frame.meta))
+        captured = captured_at(frame)
         lum_w = geo.weighted_luminance(fused)
         coarse = geo.coarse_energy(lum_w)
         self._change.observe(merge.changed, merge.held)
@@ -501,6 +504,8 @@ class Pipeline:
             lights = self._sample(self._sampler, equirect, self.config.light_count)
             lights.frame, lights.timestamp, lights.settling = self._frame, now, settling
             lights.captured = captured
+            if geo.coverage is not None:  # a lens that is not a fisheye: what it does not see is unknown
+                lights.extra["seen"] = round(geo.seen, 4)
             self._change.sampled(coarse, lum_w, merge.held)
         t3 = time.perf_counter()
         if self._is_preview_exposure(exposure, gain):
@@ -517,7 +522,7 @@ class Pipeline:
             exposure_s=exposure, gain=gain,
             timings={"prepare": t1 - t0, "fusion": t2 - t1, "sampling": t3 - t2},
             skipped=skipped, calibration_id=self._calibration_id, unit=self.unit,
-            saturated_fraction=bounded, sensor_time_s=sensor_t, captured=captured,
+            saturated_fraction=bounded, sensor_time_s=sensor_t, captured=captured, coverage=geo.coverage,
             preview_source=(lambda p=preview, g_=geo: g_.linear_frame(*p)) if preview is not None else None)
 
     def _is_preview_exposure(self, exposure: float, gain: float) -> bool:

@@ -54,6 +54,8 @@ __all__ = [
     "FrameMetadata",
     "Mode",
     "PixelFormat",
+    "captured_at",
+    "clock_offset",
     "exposure_middle",
     "snap_exposure",
     "wall_clock",
@@ -195,9 +197,36 @@ def exposure_middle(meta: FrameMetadata) -> float:
     return float(meta.timestamp_s) + 0.5 * float(meta.exposure_s)
 
 
+_OFFSET = [0.0, -math.inf]  # the clocks' offset held, when it was last read (CLOCK_MONOTONIC)
+
+
+def clock_offset() -> float:
+    """``time.time() - time.monotonic()``, held steady: read again at most once a second and
+    changed only when it moved by more than 1 ms (an NTP step, or a slew that added up), so the
+    same stamp maps to the same wall-clock time all through a run (reading the two clocks costs
+    a jitter of ~1 us between them; a replay gives the recorded ``captured`` bit for bit)."""
+    now = time.monotonic()
+    if now - _OFFSET[1] >= 1.0:
+        offset = time.time() - time.monotonic()
+        if abs(offset - _OFFSET[0]) > 1e-3:
+            _OFFSET[0] = offset
+        _OFFSET[1] = now
+    return _OFFSET[0]
+
+
 def wall_clock(monotonic_s: float) -> float:
-    """A CLOCK_MONOTONIC time as wall-clock (Unix) seconds, through the two clocks' offset now."""
-    return time.time() - time.monotonic() + float(monotonic_s)
+    """A CLOCK_MONOTONIC time as wall-clock (Unix) seconds, through the two clocks' offset
+    (:func:`clock_offset`)."""
+    return clock_offset() + float(monotonic_s)
+
+
+def captured_at(frame: Frame) -> float:
+    """Wall-clock seconds of the middle of ``frame``'s exposure: through the clocks' offset now,
+    or the one its ``extra["wall_minus_monotonic_s"]`` carries (a replayed frame: stamped on the
+    recorded unit's clock, :mod:`lightprobe.drivers.replay`)."""
+    offset = frame.extra.get("wall_minus_monotonic_s")
+    middle = exposure_middle(frame.meta)
+    return middle + float(offset) if isinstance(offset, (int, float)) else wall_clock(middle)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,7 +3,8 @@
 Specs (CONVENTIONS.md): ``v4l2:/dev/videoN`` (or a ``/dev/v4l/by-id/...`` path, which is
 preferred: it survives replugs; a ``/dev/videoN`` path is swapped for its by-id link when there is
 one), ``libcamera`` or ``libcamera:N``, ``uvc`` / ``uvc:VID:PID`` (hex; the UVC camera's V4L2 node,
-with UVC-over-USB controls as a fallback) and ``auto`` (libcamera, else the first V4L2 capture
+with UVC-over-USB controls as a fallback), ``replay:FILE`` (a recording played back as a camera,
+:mod:`lightprobe.drivers.replay`; options ``pace``, ``loop``, ``speed``) and ``auto`` (libcamera, else the first V4L2 capture
 node that opens; the choice is logged). ``auto`` never picks a simulated camera: with no
 hardware it raises :class:`NoCameraFound` (a :class:`CameraUnavailable`: a service keeps
 retrying and says why in its status; a command line exits 2).
@@ -47,9 +48,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 BY_ID = "/dev/v4l/by-id"
-SPEC_HELP = "v4l2:/dev/videoN|libcamera[:N]|uvc[:VID:PID]|auto, or a plugin: sim|v4l2-fake"
+SPEC_HELP = "v4l2:/dev/videoN|libcamera[:N]|uvc[:VID:PID]|replay:FILE|auto, or a plugin: sim|v4l2-fake"
 PLUGIN_GROUP = "lightprobe.cameras"
-_BUILTIN = ("auto", "v4l2", "libcamera", "uvc")
+_BUILTIN = ("auto", "v4l2", "libcamera", "uvc", "replay")
 # V4L2 nodes that belong to libcamera's pipelines (ISP, CSI receivers): not cameras on their own.
 _LIBCAMERA_INTERNAL = ("unicam", "rp1-cfe", "bcm2835-isp", "pispbe", "bcm2835-codec", "rpivid")
 
@@ -89,6 +90,7 @@ def parse_spec(spec: str) -> tuple[str, str]:
         or (kind == "v4l2" and arg.startswith("/"))  # an absolute path to the node
         or (kind == "libcamera" and (not arg or arg.isdigit()))
         or (kind == "uvc" and (not arg or _parse_vid_pid(arg) is not None))
+        or (kind == "replay" and bool(arg))  # a recording file (any path)
         or (kind not in _BUILTIN and not arg and kind in camera_plugins())
     )
     if not ok:
@@ -258,6 +260,10 @@ def open_camera(spec: str, *, usb_backend: Any = None, frame_source: Any = None,
         return Picamera2Camera(int(arg or 0))
     if kind == "uvc":
         return _open_uvc(arg, usb_backend, frame_source, by_id_dir, sys_root)
+    if kind == "replay":
+        from lightprobe.drivers.replay import ReplayCamera
+
+        return ReplayCamera(arg, **{k: v for k, v in options.items() if k in ("pace", "loop", "speed")})
     if kind == "auto":
         return _auto(by_id_dir)
     factory = camera_plugins()[kind].load()

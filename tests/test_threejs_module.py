@@ -204,7 +204,9 @@ async def test_a_host_page_imports_the_module_from_the_probe_and_follows_its_lig
                                              timeout=30_000)
                 figures["restart_to_lighting_s"] = time.monotonic() - t_restart
             assert figures["restart_to_lighting_s"] <= 5.0, figures
-            assert not errors, errors
+            # the browser logs each reconnect attempt the probe refused while it was down: expected
+            refused = [e for e in errors if "WebSocket connection to" in e and "ERR_CONNECTION_REFUSED" in e]
+            assert not [e for e in errors if e not in refused], errors
         finally:
             (artifacts_dir / "threejs_module.json").write_text(json.dumps(figures, indent=1))
             print(json.dumps(figures))

@@ -194,9 +194,15 @@ def _hat(levels: int, black: float, sat: float, settings: FusionSettings) -> np.
     return h
 
 
+# the live merge's black floor (build_luts' black_floor): an 8-bit camera's pedestal and dark noise
+# reach codes 2-8 (a phone's and a compact's JPEGs in ../shared/data)
+BLACK_FLOOR_FRAC = 0.03
+
+
 def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: float, sat: float,
                settings: FusionSettings, log_sigma: np.ndarray | None = None,
-               log_sigma_core: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               log_sigma_core: np.ndarray | None = None,
+               black_floor: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-level tables of one frame: value, weight, sigma (each (L + 1, 3) float64) and the
     saturation flag (L + 1, 3) bool (levels at or above ``black + sat_frac (sat - black)``);
     row L is the "invalid sample" row (weight 0).
@@ -214,6 +220,17 @@ def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
     typical sample's spread, ``log_sigma_core`` when the response has it: that scatter is
     heavy-tailed, and its root mean square (``log_sigma``, still the variance the deghosting and
     the live map's sums use) would let the tails set every sample's precision.
+
+    ``black_floor`` (the live merge's tables, :mod:`lightprobe.device.hdr.rolling`): with a
+    measured scatter, the variance also holds the camera's black, ``E(z_b)^2`` in exposure units
+    with ``z_b`` the code at :data:`BLACK_FLOOR_FRAC` of the range. The scatter is relative and
+    was measured where codes are weighed; near black a camera's codes are its pedestal and dark
+    noise, whatever the light (a 1/4000 s JPEG of a room reads codes 2-7 where the room gives
+    1e-5 of full scale, 4.5 on average), which a relative scatter turns into a confident 8 where
+    the longer exposures measured 0.07: averaged over an output pixel's samples, the pedestal's
+    bias stayed while its noise went, and the live merge took every short frame for a change (a
+    real bracket replayed: the published energy swung 25% with the schedule). A sensor model's
+    read noise is this floor already.
     """
     inv = np.asarray(inverse, dtype=np.float64)
     levels = inv.shape[0]
@@ -223,6 +240,9 @@ def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
     e = np.clip(inv / e_fs, 0.0, 1.0)
     if log_sigma is not None:  # the bracket's own scatter per code
         var = (inv * np.asarray(log_sigma, np.float64)) ** 2 + 1e-30 * e_fs**2
+        if black_floor:
+            floor = inv[min(round(BLACK_FLOOR_FRAC * (levels - 1)), levels - 1)]
+            var = var + np.maximum(floor, 0.0)[None, :] ** 2
     else:
         nm = settings.noise
         fw = max(nm.full_well_e, 1.0)
@@ -230,6 +250,8 @@ def build_luts(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
         slope = np.gradient(inv, axis=0)  # dE/dz, quantisation of the response
         var = var_sensor + slope**2 / 12.0 + 1e-30 * e_fs**2
     hat = _hat(levels, black, sat, settings)[:, None]
+    if log_sigma is not None and black_floor:
+        var = np.where(hat > 0, var / np.maximum(hat, 1e-3), var)
     val = np.zeros((levels + 1, 3), np.float64)
     w = np.zeros((levels + 1, 3), np.float64)
     sd = np.zeros((levels + 1, 3), np.float64)
@@ -259,7 +281,7 @@ _CACHE_LOCK = threading.Lock()  # fuse() runs in worker threads (asyncio.to_thre
 
 def packed_lut(inverse: np.ndarray, exposure_s: float, gain: float, *, black: float, sat: float,
                settings: FusionSettings, log_sigma: np.ndarray | None = None,
-               log_sigma_core: np.ndarray | None = None) -> np.ndarray:
+               log_sigma_core: np.ndarray | None = None, black_floor: bool = False) -> np.ndarray:
     """The kernel's table for one frame: (L + 1, 3, 5) float32 [value, weight, variance,
     saturated, merged value] (:func:`build_luts`), memoised on (response, exposure, gain, levels,
     settings): a live probe repeats the same few exposures, so the tables are built once. The
@@ -270,12 +292,12 @@ def packed_lut(inverse: np.ndarray, exposure_s: float, gain: float, *, black: fl
     core = None if log_sigma is None or log_sigma_core is None else np.ascontiguousarray(log_sigma_core, np.float64)
     key = (hash(inv.tobytes()), inv.shape, None if sig is None else hash(sig.tobytes()),
            None if core is None else hash(core.tobytes()), float(exposure_s), float(gain), float(black),
-           float(sat), settings)
+           float(sat), settings, bool(black_floor))
     hit = _LUT_CACHE.get(key)
     if hit is not None:
         return hit
     val, w, sd, satf = build_luts(inv, exposure_s, gain, black=black, sat=sat, settings=settings, log_sigma=sig,
-                                  log_sigma_core=core)
+                                  log_sigma_core=core, black_floor=black_floor)
     fmax = float(np.finfo(np.float32).max) / 16
     lut = np.stack([val, w, sd**2, satf.astype(np.float64), val], axis=-1)
     lut = np.clip(np.nan_to_num(lut, nan=0.0, posinf=fmax), 0, fmax)

@@ -19,6 +19,9 @@ COARSE_BLOCKS = (8, 16)  # blocks of the upper hemisphere for the change test (r
 MAX_MAPS = 8  # published maps' buffers kept for reuse (1.5 MB each at 256 rows)
 
 
+SEEN_WHOLE = 0.999  # a lens that sees this share of the upper hemisphere sees all of it
+
+
 class OutputGeometry:
     """What the pipeline derives once per calibration and output size: the equirect table's
     upper-hemisphere rows, per output pixel constants (solid angle, mean inverse gain), the
@@ -45,6 +48,11 @@ class OutputGeometry:
         self.sharing = sample_sharing(ip, t.indices, d * ig, self.rows, row_of, geo_w)  # (for the lamp tracker)
         omega = equirect_row_solid_angle(height)[: height // 2]
         self.solid_angle_out = np.repeat(omega, 2 * height)
+        # what the lens sees of the upper hemisphere: 1 for a probe's fisheye; a camera that is
+        # not one (a recording of photographs) leaves the rest unseen, which is not black
+        cov = np.asarray(projector.coverage_equirect, np.float32)
+        self.seen = float((cov[: height // 2].reshape(-1) * self.solid_angle_out).sum() / self.solid_angle_out.sum())
+        self.coverage = cov if self.seen < SEEN_WHOLE else None  # (H, 2H): each pixel's seen share
         resp = calibration.response
         assert resp is not None
         self.full_scale = float(np.max(resp.inverse[-1]))
@@ -104,8 +112,18 @@ class OutputGeometry:
         else:
             inv = sanitized_inverse(resp.inverse)
             lut = packed_lut(inv, exposure, gain, black=0.0, sat=float(inv.shape[0] - 1), settings=st,
-                             log_sigma=resp.log_sigma, log_sigma_core=resp.log_sigma_core)
-        return lut, lut_bounds(lut)
+                             log_sigma=resp.log_sigma, log_sigma_core=resp.log_sigma_core, black_floor=True)
+        dark, top = lut_bounds(lut)
+        if not fmt.is_raw and resp.log_sigma is not None:
+            # A measured response is least sure at its top (highlight roll-off, JPEG ringing): a
+            # saturated sample is at least the threshold code's value less three of its scatter.
+            # Taken at face value, a real bracket's longer frame said "at least 374" where its
+            # shortest measured 310 a lamp's pixels, and the live merge took it for the lamp
+            # brightening (piccante replayed: +4-5% energy for one frame in every cycle)
+            k = np.argmax(lut[:-1, :, 3] > 0, axis=0)
+            sig = np.asarray(resp.log_sigma, np.float64)[np.minimum(k, len(resp.log_sigma) - 1), np.arange(3)]
+            top = top * np.exp(-3.0 * sig)
+        return lut, (dark, top)
 
     def weighted_luminance(self, fused: np.ndarray) -> np.ndarray:
         """Luminance x solid angle of each upper-hemisphere output pixel (rows,) float64: what

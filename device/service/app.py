@@ -56,7 +56,7 @@ PRIVATE_PATHS = frozenset({"/api/v1/preview.jpg", "/api/v1/probe.exr", "/api/v1/
                            "/api/v1/calibration/live/frame.jpg"})
 # ... and everything made of the map's pixels for hosts: cubemaps, glTF images, USD dome textures
 # (the SH and the primary light are lighting data, readable on the LAN)
-PRIVATE_PREFIXES = ("/api/v1/cubemap", "/api/v1/environment")
+PRIVATE_PREFIXES = ("/api/v1/cubemap", "/api/v1/environment", "/api/v1/recordings")
 
 
 def needs_token(st: ServiceState, method: str, path: str) -> bool:
@@ -403,7 +403,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     :class:`lightprobe.device.service.mqtt.MqttSettings` to publish to a broker (``None``: off); ``osc``
     a :class:`lightprobe.device.service.osc.OscSettings` to send to OSC hosts (``None``: off); ``view_mesh``
     an OBJ file for ``/view`` (``None``: ``[view] mesh``)."""
-    from lightprobe.device.service.routes import calibration, environment, probe, q2tree
+    from lightprobe.device.service.routes import calibration, environment, probe, q2tree, recordings
 
     app = web.Application(
         client_max_size=int(config.get("service", "client_max_size")),
@@ -419,7 +419,10 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     state_holder: dict[str, ServiceState] = {}
 
     def build(cfg: ServiceConfig) -> PipelineLike:  # runs in a worker thread (Runner)
-        return make_pipeline(state_holder["s"].camera_or_make(), cfg)
+        s = state_holder["s"]
+        camera = s.camera_or_make()
+        # since a recording started, over its wrapper (routes.recordings)
+        return make_pipeline(s.recorder if s.recorder is not None else camera, cfg)
 
     reconf = getattr(make_pipeline, "reconfigure", None)  # optional: apply config in place
     runner = Runner(build, config, backoff_initial=backoff[0], backoff_max=backoff[1], reconfigure=reconf)
@@ -432,6 +435,7 @@ def create_app(config: ServiceConfig, make_camera: CameraFactory, make_pipeline:
     q2tree.add_routes(app)  # GET /api/v1/q2tree (binary tree for host-side merging)
     environment.add_routes(app, static)  # SH, cubemaps, glTF / USD, the live three.js view
     calibration.add_routes(app, getattr(make_pipeline, "state_dir", None), static)  # live calibration
+    recordings.add_routes(app, getattr(make_pipeline, "state_dir", None))  # the camera's frames, to replay
     app.cleanup_ctx.extend([_camera_ctx, _pipeline_ctx, _mdns_ctx, _mqtt_ctx, _osc_ctx, _notify_ctx])
     app.on_shutdown.append(_close_websockets)
     return app

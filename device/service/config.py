@@ -146,6 +146,13 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
                     lambda v: len(v) <= 16 and all(isinstance(u, str) and _is_osc_target(u) for u in v)),
         "rate": (float, 0.0, "light sets per second at most, in [0, 120] (0 = every set)", in_range(0.0, 120.0)),
     },
+    # recordings of the camera's frames (POST /api/v1/recordings; lightprobe.device.service.recordings)
+    "recordings": {
+        "max_seconds": (float, 60.0, "longest recording, seconds, in [1, 3600]", in_range(1.0, 3600.0)),
+        "max_mb": (float, 512.0, "largest recording, MB, in [1, 65536]", in_range(1.0, 65536.0)),
+        "keep_mb": (float, 2048.0, "MB all recordings may take in the state dir, in [1, 1048576]; a "
+                    "recording that would not fit is refused (507)", in_range(1.0, 1048576.0)),
+    },
     "view": {
         "mesh": (str, "", "an OBJ file /view shows beside its spheres (empty = a torus knot)",
                  lambda v: len(v) <= 4096 and v.isprintable()),

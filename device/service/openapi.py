@@ -24,7 +24,8 @@ __all__ = ["config_schema", "document"]
 
 _ERR = {"$ref": "#/components/responses/Error"}
 _CAMERA_PATHS = {"/lights", "/probe.exr", "/probe.hdr", "/preview.jpg", "/q2tree", "/calibration/live/frame.jpg"}
-_PRIVATE = {"/preview.jpg", "/probe.exr", "/probe.hdr", "/calibration/live/frame.jpg"}
+_PRIVATE = {"/preview.jpg", "/probe.exr", "/probe.hdr", "/calibration/live/frame.jpg", "/recordings",
+            "/recordings/{id}"}
 _SAVES = {("/config", "put"), ("/calibration/live/commit", "post")}
 
 

@@ -160,6 +160,7 @@ class Runner:
         self.fps = 0.0
         self._last_frame_t: float | None = None
         self._rebuild = False
+        self._fresh = False
         self._task: asyncio.Task[None] | None = None
         self.cache: dict[str, tuple[int, bytes]] = {}  # per-frame encoded images (api.py)
         self.cache_locks: dict[str, asyncio.Lock] = {}  # one computation per key and frame
@@ -209,6 +210,11 @@ class Runner:
         self.config = config
         self._rebuild = True
 
+    def request_fresh_start(self) -> None:
+        """Rebuild the pipeline before the next frame: a new estimate from a metering sweep, on
+        the same tables (a recording starts so: its replay is then the run it recorded)."""
+        self._fresh = True
+
     def set_config(self, config: Any) -> None:
         """Use ``config`` for pacing without touching the pipeline (fps-only changes)."""
         self.config = config
@@ -227,6 +233,9 @@ class Runner:
                 log.warning("pipeline stop failed: %s", e)
 
     async def _ensure_started(self) -> PipelineLike:
+        if self._fresh:
+            self._fresh = False
+            await self._stop_pipeline()
         if self._rebuild:
             self._rebuild = False
             if self.pipeline is not None and self.reconfigure is not None:

@@ -93,6 +93,8 @@ class ServiceState:
     guard: Any = None  # lightprobe.device.service.connection_limits.ConnectionGuard of the listening socket, if any
     mqtt: Any = None  # lightprobe.device.service.mqtt.MqttPublisher while publishing to a broker
     osc: Any = None  # lightprobe.device.service.osc.OscSender while sending to OSC hosts
+    recordings: Any = None  # lightprobe.device.service.recordings.Recordings
+    recorder: Any = None  # the RecordingCamera the pipeline runs over since a recording started
     _camera_lock: threading.Lock = field(default_factory=threading.Lock)
     _camera_error: Exception | None = None
 

@@ -137,7 +137,12 @@ async def probe_exr(request: web.Request) -> web.Response:
             **({} if getattr(r, "captured", None) is None else {"captured": repr(float(r.captured))}),
             "calibration_id": str(r.calibration_id), "frame": str(int(r.frame)),
             "frame_convention": "lightprobe probe frame, +y up, equirect row 0 at zenith"}
-    data = await _cached(st, "exr", exr_bytes, r.equirect, meta)
+    image = r.equirect
+    cov = getattr(r, "coverage", None)
+    if cov is not None:  # a lens that is not a fisheye: A is the share of each pixel it sees
+        image = np.concatenate([np.asarray(r.equirect, np.float32), np.asarray(cov, np.float32)[..., None]], axis=2)
+        meta["alpha"] = "coverage: the share of each pixel the camera sees (0 = unseen, not black)"
+    data = await _cached(st, "exr", exr_bytes, image, meta)
     return web.Response(body=data, content_type="image/x-exr",
                         headers={"Content-Disposition": 'inline; filename="probe.exr"'})
 

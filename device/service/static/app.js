@@ -201,6 +201,51 @@
     } finally { btn.disabled = false; }
   });
 
+  // ---- recordings (POST /api/v1/recordings; README "Recordings") -----------------------------------
+  async function listRecordings() {
+    const ul = $("recordings");
+    if (!ul || !token) return;
+    try {
+      const r = await fetch(API + "/recordings", { headers: authHeaders() });
+      if (!r.ok) return;
+      const body = await r.json();
+      ul.replaceChildren(...body.recordings.slice().reverse().map((rec) => {
+        const li = document.createElement("li");
+        const mb = ((rec.bytes || 0) / 1e6).toFixed(1) + " MB";
+        if (rec.state === "done") {
+          const a = document.createElement("a");
+          a.href = withToken(API + "/recordings/" + rec.id);
+          a.textContent = rec.id + ".lprec";
+          a.download = rec.id + ".lprec";
+          li.append(a, " " + mb);
+        } else {
+          li.textContent = rec.id + ": " + rec.state + (rec.frames != null ? ", " + rec.frames + " frames, " + mb : "")
+            + (rec.error ? " (" + rec.error + ")" : "");
+        }
+        return li;
+      }));
+    } catch (e) { /* the next poll tries again */ }
+  }
+  $("record-form").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const msg = $("record-msg"), btn = $("record-button");
+    btn.disabled = true; msg.textContent = "starting…"; msg.className = "msg";
+    try {
+      const r = await fetch(API + "/recordings", {
+        method: "POST", headers: { "Content-Type": "application/json", ...authHeaders() },
+        body: JSON.stringify({ seconds: Number($("record-seconds").value) }),
+      });
+      const body = await r.json();
+      if (!r.ok) throw new Error(body.error || ("HTTP " + r.status));
+      msg.textContent = "Recording " + body.id + " (the estimate restarts: a few sets are marked settling)";
+      msg.className = "msg ok"; listRecordings();
+    } catch (e) {
+      msg.textContent = "Not recording: " + e.message; msg.className = "msg err";
+    } finally { btn.disabled = false; }
+  });
+  setInterval(listRecordings, 2000);
+  listRecordings();
+
   window.addEventListener("resize", drawLights);
   connectStream();
   pollStatus();
