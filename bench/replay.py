@@ -69,6 +69,7 @@ def _gaps(path: Path) -> dict[str, Any]:
         lost = sum(int(f.meta.get("lost_before", 0)) for f in r.frames)
         span = r.frames[-1].meta["delivered_s"] - r.frames[0].meta["delivered_s"]
     return {"frames": len(seq), "sensor_frames": seq[-1] - seq[0] + 1, "sequence_gaps": seq[-1] - seq[0] + 1 - len(seq),
+            "gaps_at_frames": [k for k in range(1, len(seq)) if seq[k] - seq[k - 1] > 1],
             "lost_by_writer": lost, "seconds": span}
 
 
@@ -162,6 +163,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     summary = {"recorder_cpu_ms_per_frame": ws["recording"].get("cpu_ms_per_frame"),
                "recorder_lost_frames": ws["recording"].get("lost_frames"),
                "sequence_gaps_while_recording": ws["file"]["sequence_gaps"],
+               "gaps_at_frames": ws["file"]["gaps_at_frames"],
                "frames_drained_before": ws["before"]["frames_drained"],
                "sets_per_s_before": round(ws["before"]["sets_per_s"], 2),
                "sets_per_s_during": round(ws["during"]["sets_per_s"], 2),

@@ -166,10 +166,11 @@ class RecordingWriter:
                 "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                 "clock": {"wall_minus_monotonic_s": clock_offset()}, **header}
         body = json.dumps(head, separators=(",", ":")).encode()
-        self._f = open(self.path, "xb")  # noqa: SIM115 - closed by close() / the writer thread
-        self._f.write(MAGIC + _HEAD.pack(VERSION, len(body)) + body + struct.pack("<I", zlib.crc32(body)))
-        self._f.flush()
-        self.bytes = self._f.tell()
+        self._f = open(self.path, "xb", buffering=0)  # noqa: SIM115 - closed by close() / the writer thread
+        self._fd = self._f.fileno()
+        first = MAGIC + _HEAD.pack(VERSION, len(body)) + body + struct.pack("<I", zlib.crc32(body))
+        os.write(self._fd, first)
+        self.bytes = len(first)
         self.frames = 0
         self.lost = 0
         self._lost_pending = 0
@@ -237,10 +238,12 @@ class RecordingWriter:
         at most one partial one after them)."""
         view = memoryview(data).cast("B")  # type: ignore[arg-type]  # an ndarray is a buffer
         crc = zlib.crc32(view, zlib.crc32(meta))
-        try:
-            self._f.write(_REC.pack(_TAG, len(meta), len(view), crc) + meta)
-            self._f.write(view)
-            self._f.flush()
+        head = _REC.pack(_TAG, len(meta), len(view), crc) + meta
+        try:  # one system call per record, straight from the frame's memory (no buffer between)
+            n = os.writev(self._fd, [head, view])
+            while n < len(head) + len(view):  # a short write (a signal, a full pipe): the rest
+                rest = (head + bytes(view))[n:]
+                n += os.write(self._fd, rest)
         except OSError as e:
             self.error = f"{self.path}: {e.strerror or e}"
             self.full = True
@@ -253,8 +256,7 @@ class RecordingWriter:
         self._q.put(None)
         self._thread.join()
         try:
-            self._f.flush()
-            os.fsync(self._f.fileno())
+            os.fsync(self._fd)
         except OSError as e:  # pragma: no cover - a full disk at the very end
             self.error = self.error or f"{self.path}: {e.strerror or e}"
         self._f.close()
