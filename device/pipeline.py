@@ -77,6 +77,10 @@ _MEMORY_S = 10.0  # the shortest exposure keeps headroom for what was brightest 
 _PEAK_DROP = 2.0  # ... and is lengthened only when that fell below the planned peak by this factor,
 _PEAK_RISE = 1.5  # ... shortened when it rose above it by this one
 RELEASE_AFTER_FRAMES = 150  # frames after which the start's memory is handed back (5 s at 30 fps)
+# whether a pipeline of this process handed back its start's memory: a pipeline rebuilt later (a
+# recording's fresh start, a calibration reload, a reconnect) links no kernel anew and skips it
+# (the collection holds the interpreter 40-80 ms: a paced camera drops a frame for it)
+_START_RELEASED = [False]
 
 
 @dataclass
@@ -205,6 +209,7 @@ class Pipeline:
         self._frame = 0
         self._started = False
         self._steps = 0  # frames processed (the start's memory is handed back once, see step)
+        self._release_due = not _START_RELEASED[0]
         self._stream_on = False
         self._change = ChangeTest()  # whether a frame may republish the last light set
         self._extra_lights = 0
@@ -395,6 +400,7 @@ class Pipeline:
                 if geo.rows == self._geo.rows:  # same output pixels: the rolling estimate carries over
                     self._geo = geo
                     self._steps = 0  # its frames link kernels for its arrays: release after them
+                    self._release_due = True
                     log.info("balanced projection table in use")
         if self._merge is None:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
@@ -436,11 +442,12 @@ class Pipeline:
                           "process_cpu": time.process_time() - c2}
         self._update_stats(result)
         self._steps += 1
-        if self._steps == RELEASE_AFTER_FRAMES:
+        if self._steps == RELEASE_AFTER_FRAMES and self._release_due:
             # the start is over (every kernel the frames use is linked, the tables swapped in):
             # hand back its garbage and the start's library pages once (lightprobe.device.allocator)
             from lightprobe.device.allocator import release_memory
 
+            self._release_due, _START_RELEASED[0] = False, True
             await asyncio.to_thread(release_memory)
         self.latest = result
         return result
