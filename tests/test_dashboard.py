@@ -73,6 +73,14 @@ async def test_dashboard_live_view_lights_status_and_rename(tmp_path: Path, arti
                                          timeout=5_000)
             async with aiohttp.ClientSession() as c, c.get(s.api + "/config") as r:
                 assert (await r.json())["config"]["probe"]["name"] == "Atrium east"
+            # the Record button: a recording of the camera's frames, listed with its download link
+            await page.fill("#record-seconds", "1")
+            await page.click("#record-button")
+            await page.wait_for_selector("#record-msg.ok", timeout=10_000)
+            await page.wait_for_selector("#recordings a[download]", timeout=60_000)
+            href = await page.eval_on_selector("#recordings a[download]", "a => a.href")
+            async with aiohttp.ClientSession() as c, c.get(href) as r:
+                assert r.status == 200 and (await r.read())[:8] == b"LPREC\r\n\x1a"
             await page.wait_for_timeout(1200)  # one more frame + status poll for the screenshot
             await page.screenshot(path=str(artifacts_dir / "dashboard.png"), full_page=True)
             assert not errors, errors
