@@ -32,9 +32,9 @@ ROUTE = "/api/v1/recordings"
 
 
 def _number(body: dict[str, Any], key: str, default: float | None) -> float | None:
-    v = body.get(key, default)
-    if v is None:
-        return None
+    if key not in body:
+        return default
+    v = body[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
         raise ApiError(400, f"{key} must be a number", param=key)
     return float(v)
