@@ -40,7 +40,10 @@ def _run(args: list[str], log_name: str) -> None:
 
 @pytest.mark.parametrize("with_token", [False, True], ids=["no-token", "token"])
 def test_schemathesis_finds_no_failure(tmp_path: Path, with_token: bool) -> None:
-    p, url, token = start_serve(tmp_path / "state")
+    # recordings the fuzzer starts stay short (each one restarts the estimate and writes 28 MB/s)
+    cfg = tmp_path / "config.toml"
+    cfg.write_text("[recordings]\nmax_seconds = 1.0\nmax_mb = 32.0\nkeep_mb = 256.0\n")
+    p, url, token = start_serve(tmp_path / "state", "--config", str(cfg))
     try:
         asyncio.run(_wait_lights(url))
         base = [*_st(), "run", url + "/api/v1/openapi.json", "--url", url + "/api/v1", "--checks", "all",

@@ -129,12 +129,13 @@ class Recordings:
                            headers={"Retry-After": "1"})
         limit_s = float(cfg.get("recordings", "max_seconds"))
         limit_mb = float(cfg.get("recordings", "max_mb"))
-        if not 0 < seconds <= limit_s:
-            raise ApiError(400, f"seconds must be in (0, {limit_s:g}] (recordings.max_seconds), got {seconds:g}",
-                           param="seconds")
-        mb = limit_mb if max_mb is None else float(max_mb)
-        if not 0 < mb <= limit_mb:
-            raise ApiError(400, f"max_mb must be in (0, {limit_mb:g}] (recordings.max_mb), got {mb:g}", param="max_mb")
+        if not seconds > 0:
+            raise ApiError(400, f"seconds must be > 0, got {seconds:g}", param="seconds")
+        if max_mb is not None and not max_mb > 0:
+            raise ApiError(400, f"max_mb must be > 0, got {max_mb:g}", param="max_mb")
+        # beyond the installer's limits, the limits: the answer says which are in effect
+        seconds = min(seconds, limit_s)
+        mb = limit_mb if max_mb is None else min(float(max_mb), limit_mb)
         room = int(float(cfg.get("recordings", "keep_mb")) * 1e6) - self.used_bytes()
         try:
             free = os.statvfs(folder).f_bavail * os.statvfs(folder).f_frsize

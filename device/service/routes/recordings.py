@@ -1,8 +1,9 @@
 """``/api/v1/recordings``: record the camera's frames while the service runs, list, download, delete.
 
 - ``POST /api/v1/recordings`` ``{"seconds": 10, "max_mb": 512}`` (token): starts one (202, its
-  state); 409 while one is being made, 400 beyond ``[recordings]``' limits, 507 when the
-  recordings would exceed ``recordings.keep_mb`` or the disk is full;
+  state, with the limits in effect: ``[recordings]``' cap larger requests); 409 while one is
+  being made, 400 for a bad body, 507 when the recordings would exceed ``recordings.keep_mb`` or
+  the disk is full;
 - ``GET /api/v1/recordings``: every recording with its state (``starting``, ``recording``,
   ``finishing``, ``done``, ``failed``), size and, while it is made, frames and seconds;
 - ``GET /api/v1/recordings/{id}``: the file (``application/octet-stream``; 409 while it is made);
@@ -53,8 +54,13 @@ async def start(request: web.Request) -> web.Response:
     if unknown:
         raise ApiError(400, f"unknown field {sorted(unknown)[0]!r} (seconds, max_mb)", param=sorted(unknown)[0])
     seconds = _number(body, "seconds", 10.0)
+    max_mb = _number(body, "max_mb", None)
     assert seconds is not None
-    out = st.recordings.start(st, seconds, _number(body, "max_mb", None))
+    if not 0 < seconds <= 3600:
+        raise ApiError(400, f"seconds must be in (0, 3600], got {seconds:g}", param="seconds")
+    if max_mb is not None and not 0 < max_mb <= 65536:
+        raise ApiError(400, f"max_mb must be in (0, 65536], got {max_mb:g}", param="max_mb")
+    out = st.recordings.start(st, seconds, max_mb)
     return web.json_response(out, status=202)
 
 
