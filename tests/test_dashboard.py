@@ -80,7 +80,8 @@ async def test_dashboard_live_view_lights_status_and_rename(tmp_path: Path, arti
             await page.wait_for_selector("#recordings a[download]", timeout=60_000)
             href = await page.eval_on_selector("#recordings a[download]", "a => a.href")
             async with aiohttp.ClientSession() as c, c.get(href) as r:
-                assert r.status == 200 and (await r.read())[:8] == b"LPREC\r\n\x1a"
+                assert r.status == 200
+                assert (await r.read())[:8] == b"LPREC\r\n\x1a"
             await page.wait_for_timeout(1200)  # one more frame + status poll for the screenshot
             await page.screenshot(path=str(artifacts_dir / "dashboard.png"), full_page=True)
             assert not errors, errors
