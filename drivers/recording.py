@@ -40,8 +40,11 @@ other than 1 is refused; both errors name the file (:class:`lightprobe.core.erro
 exit 2 on the command line).
 
 :class:`RecordingCamera` wraps any camera and appends what it delivers to a
-:class:`RecordingWriter`, which writes in its own thread (the event loop only queues the
-frame: < 0.05 ms; the CRC and the write, ~0.5 ms for a VGA frame, run beside it).
+:class:`RecordingWriter`: the caller's thread takes the frame's CRC as it arrives (0.2 ms for a
+VGA frame, while the pipeline has just read its pixels and they are in the cache; a frame time
+later, in another thread, the same CRC cost twice that) and queues it; the writer's own thread
+writes it (one ``writev``). ``lightprobe bench replay``: 0.94-0.98 ms of CPU a frame in all
+while the service runs at 30 fps.
 """
 
 from __future__ import annotations
@@ -179,7 +182,7 @@ class RecordingWriter:
         self.cpu_s = 0.0  # CPU seconds the recording cost: queueing on the caller's thread, CRC and write on its own
         self._first_delivered: float | None = None
         self._last_delivered = 0.0
-        self._q: queue.Queue[tuple[bytes, np.ndarray] | None] = queue.Queue(maxsize=max(1, queue_frames))
+        self._q: queue.Queue[tuple[bytes, np.ndarray, int] | None] = queue.Queue(maxsize=max(1, queue_frames))
         self._thread = threading.Thread(target=self._run, name="lightprobe-recorder", daemon=True)
         self._thread.start()
 
@@ -210,8 +213,10 @@ class RecordingWriter:
         if self.bytes + _REC.size + len(meta) + data.nbytes > self.max_bytes:
             self.full = True
             return False
+        # the CRC now, while the frame's pixels are in the cache (the pipeline has just read them)
+        crc = zlib.crc32(memoryview(data).cast("B"), zlib.crc32(meta))  # type: ignore[arg-type]
         try:
-            self._q.put_nowait((meta, data))
+            self._q.put_nowait((meta, data, crc))
         except queue.Full:
             self._lost_pending += 1
             self.lost += 1
@@ -226,18 +231,17 @@ class RecordingWriter:
             item = self._q.get()
             if item is None:
                 return
-            meta, data = item
+            meta, data, crc = item
             if self.error is not None:
                 continue
             c0 = time.thread_time()
-            self._write(meta, data)
+            self._write(meta, data, crc)
             self.cpu_s += time.thread_time() - c0
 
-    def _write(self, meta: bytes, data: np.ndarray) -> None:
+    def _write(self, meta: bytes, data: np.ndarray, crc: int) -> None:
         """One record: its header, metadata and pixels, flushed (a crash leaves whole frames and
         at most one partial one after them)."""
         view = memoryview(data).cast("B")  # type: ignore[arg-type]  # an ndarray is a buffer
-        crc = zlib.crc32(view, zlib.crc32(meta))
         head = _REC.pack(_TAG, len(meta), len(view), crc) + meta
         try:  # one system call per record, straight from the frame's memory (no buffer between)
             n = os.writev(self._fd, [head, view])
