@@ -117,8 +117,9 @@ class Recordings:
         return out
 
     # ---- making one -----------------------------------------------------------------------------
-    def start(self, st: Any, seconds: float, max_mb: float | None) -> dict[str, Any]:
-        """Begin a recording of ``seconds`` (at most ``max_mb``) on the service state ``st``."""
+    def start(self, st: Any, camera: Any, seconds: float, max_mb: float | None) -> dict[str, Any]:
+        """Begin a recording of ``seconds`` (at most ``max_mb``) of ``camera`` (the service's,
+        :meth:`ServiceState.ensure_camera`) on the service state ``st``."""
         from lightprobe.drivers.recording import RecordingCamera, RecordingWriter
 
         cfg = st.config
@@ -138,7 +139,8 @@ class Recordings:
         mb = limit_mb if max_mb is None else min(float(max_mb), limit_mb)
         room = int(float(cfg.get("recordings", "keep_mb")) * 1e6) - self.used_bytes()
         try:
-            free = os.statvfs(folder).f_bavail * os.statvfs(folder).f_frsize
+            fs = os.statvfs(folder)
+            free = fs.f_bavail * fs.f_frsize
         except OSError:
             free = room
         room = min(room, free - (64 << 20))  # keep 64 MB of the disk for the state dir
@@ -150,7 +152,6 @@ class Recordings:
         rid, n = stamp, 1
         while (folder / f"{rid}{SUFFIX}").exists() or (folder / f"{rid}{SUFFIX}.part").exists():
             rid, n = f"{stamp}-{n}", n + 1
-        camera = st.camera_or_make()
         inner = camera.inner if isinstance(camera, RecordingCamera) else camera
         active = _Active(rid, RecordingCamera(inner), float(seconds), max_bytes)
         part = folder / f"{rid}{SUFFIX}.part"

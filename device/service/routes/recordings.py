@@ -60,7 +60,8 @@ async def start(request: web.Request) -> web.Response:
         raise ApiError(400, f"seconds must be in (0, 3600], got {seconds:g}", param="seconds")
     if max_mb is not None and not 0 < max_mb <= 65536:
         raise ApiError(400, f"max_mb must be in (0, 65536], got {max_mb:g}", param="max_mb")
-    out = st.recordings.start(st, seconds, max_mb)
+    camera = await st.ensure_camera()  # made off the loop if the pipeline has not made it yet
+    out = st.recordings.start(st, camera, seconds, max_mb)
     return web.json_response(out, status=202)
 
 
