@@ -404,7 +404,8 @@ class Pipeline:
                     log.info("balanced projection table in use")
         if self._merge is None:
             self._merge = RollingMerge(self._geo.rows, width=2 * self._geo.height,
-                                       max_slots=self.config.max_exposures + 2)
+                                       max_slots=self.config.max_exposures + 2,
+                                       by_response=self._geo.weighs_by_response(self.camera.mode.format))
         if self._sampler is None:
             if self._sampler_warm is not None:
                 task = self._sampler_warm

@@ -178,3 +178,62 @@ def test_frame_to_map_is_the_merge_of_one_frame(t: float) -> None:
     # censored pixels report their lower bound, measured ones none
     assert np.all(fm.lower[fm.sat > 0] > 0)
     assert np.all(fm.lower[fm.sat == 0] == 0)
+
+
+def test_by_response_fuses_the_slots_by_the_response_weights() -> None:
+    """A measured (JPEG) response: the slots are fused by the footprint's mean of its samples'
+    LUT weights (h(z) / sigma_core(z)^2), as the offline fusion weighs exposures, while the
+    change test keeps the precisions (which hold the black floor). Brute force: each frame's
+    map (frame_to_map) and the weights read off the LUT at the codes, averaged here."""
+    rng = np.random.default_rng(8)
+    pixels = 300
+    radiance = _scene(pixels, rng)
+    table, geo_n, gain = _table(pixels)
+    z = np.arange(256, dtype=np.float64)
+    sigma = np.repeat((0.01 + 0.05 * np.exp(-z / 20.0) + 0.04 * (z / 255.0) ** 8)[:, None], 3, axis=1)
+    core = 0.6 * sigma
+    exposures = [1.0 / 256, 1.0 / 32]
+
+    def lut(t: float) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        lt = packed_lut(LINEAR, t, 1.0, black=0.0, sat=255.0, settings=FusionSettings(), log_sigma=sigma,
+                        log_sigma_core=core, black_floor=True)
+        return lt, lut_bounds(lt)
+
+    frames = [(t, _codes(radiance, t, rng)) for t in exposures]
+    fused = {}
+    for by in (True, False):
+        merge = RollingMerge(pixels, by_response=by, decay=0.0)
+        for f, (t, codes) in enumerate(frames):
+            out = merge.update((t, 1.0), f, table, geo_n, gain, codes, *lut(t))
+        assert not merge.changed.any()
+        fused[by] = out.copy()
+    num = np.zeros((pixels, 3))
+    den = np.zeros((pixels, 3))
+    for t, codes in frames:
+        lt, bounds = lut(t)
+        fm = frame_to_map(table, geo_n, gain, codes, lt, bounds, pixels)
+        w = lt[codes.astype(np.int64), np.arange(3)[None, :], 1].astype(np.float64)  # (samples, 3)
+        w = np.where(lt[codes.astype(np.int64), np.arange(3)[None, :], 3] > 0, 0.0, w)
+        wmean = w.reshape(pixels, K, 3).mean(axis=1)
+        use = np.isfinite(fm.var) & (fm.sat == 0)
+        num += np.where(use, wmean * fm.m, 0.0)
+        den += np.where(use, wmean, 0.0)
+    both = den > 0
+    assert both.mean() > 0.5
+    expect = num[both] / den[both]
+    np.testing.assert_allclose(fused[True][both], expect, rtol=2e-5)
+    # and it is not what the precisions give (the test would not see a merge that ignored it)
+    assert np.abs(fused[False][both] / expect - 1.0).max() > 1e-3
+
+    # over a long run with changes, the weights' running sums hold what a fresh sum gives
+    merge = RollingMerge(pixels, by_response=True, resum_every=10_000)
+    for f in range(200):
+        t = exposures[f % 2]
+        scene = radiance * (1.0 if (f // 37) % 2 == 0 else 1.5)  # a change every 37 frames
+        merge.update((t, 1.0), f, table, geo_n, gain, _codes(scene, t, rng), *lut(t))
+    numw, denw = merge.numw.copy(), merge.denw.copy()
+    _resum(merge.m, merge.p, len(merge.keys), merge.num, merge.den, merge.w, merge.numw, merge.denw)
+    ok = merge.denw > 0
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose(numw[ok] / denw[ok], merge.numw[ok] / merge.denw[ok], rtol=1e-5)
+    np.testing.assert_allclose(denw, merge.denw, rtol=1e-4, atol=1e-6 * merge.denw.max())

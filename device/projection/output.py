@@ -125,6 +125,13 @@ class OutputGeometry:
             top = top * np.exp(-3.0 * sig)
         return lut, (dark, top)
 
+    def weighs_by_response(self, fmt: Any) -> bool:
+        """Whether the rolling merge fuses its slots by the LUTs' weights (``RollingMerge``'s
+        ``by_response``): for a response with measured scatter (a JPEG/YUV camera's, fitted to
+        its own bracket), whose LUTs hold the black floor in their variances."""
+        resp = self.calibration.response
+        return not fmt.is_raw and resp is not None and resp.log_sigma is not None
+
     def weighted_luminance(self, fused: np.ndarray) -> np.ndarray:
         """Luminance x solid angle of each upper-hemisphere output pixel (rows,) float64: what
         the change tests compare, computed once per frame into one buffer that the next call
