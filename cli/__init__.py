@@ -53,6 +53,9 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    from lightprobe.device.threads import select
+
+    select()  # a thread-safe numba threading layer, before anything imports numba
     parser = argparse.ArgumentParser(
         prog="lightprobe",
         description="Live HDR light probe: capture, fuse, project and sample lighting.",

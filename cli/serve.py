@@ -281,6 +281,15 @@ def main(argv: list[str]) -> int:
 
     tune_allocator()  # before any thread starts: a small board's memory
     skip_numba_blas_probe()  # scipy.linalg stays out of the service (16 MB)
+    from lightprobe.device.threads import ThreadingLayerError, require_threadsafe, select
+
+    select()
+    try:
+        layer = require_threadsafe()
+    except ThreadingLayerError as e:
+        print(f"lightprobe serve: error: {e}", file=sys.stderr)
+        return 2
+    log.info("numba threading layer: %s", layer)
     if a.port is not None and not 0 <= a.port <= 65535:
         print(f"lightprobe: error: --port must be in [0, 65535], got {a.port}", file=sys.stderr)
         return 2

@@ -252,6 +252,9 @@ class Camera(abc.ABC):
     """
 
     name: str = "camera"
+    # the driver this camera runs through ("sim", "v4l2", "libcamera", "uvc", "replay"): what
+    # /status and mDNS say beside the device's model
+    driver: str = "camera"
 
     @abc.abstractmethod
     async def open(self) -> None:

@@ -142,6 +142,7 @@ class Picamera2Camera(Camera):
     """
 
     name = "libcamera"
+    driver = "libcamera"
 
     def __init__(self, camera_num: int = 0, *, factory: Callable[[int], Any] | None = None,
                  raw: bool = True, buffer_count: int = 4, max_exposure_s: float = 1.0) -> None:  # fmt: skip

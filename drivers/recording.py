@@ -427,6 +427,7 @@ class RecordingCamera(Camera):
     def __init__(self, camera: Camera) -> None:
         self.inner = camera
         self.name = camera.name
+        self.driver = camera.driver
         self.writer: RecordingWriter | None = None
         self.calibration_json: dict[str, Any] | None = None  # the pipeline's (lightprobe.device.bootstrap)
         self._requested: Controls | None = None

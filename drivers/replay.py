@@ -62,6 +62,8 @@ class RecordingEnded(CameraUnavailable):
 class ReplayCamera(Camera):
     """A recording as a camera (module docstring)."""
 
+    driver = "replay"
+
     def __init__(self, path: str | os.PathLike[str], *, pace: bool = True, loop: bool = False,
                  speed: float = 1.0, verify: bool = True) -> None:
         if not str(path):

@@ -362,6 +362,8 @@ class UvcCamera(Camera):
     ``exposure_verified=False`` and the same settling rule as V4L2.
     """
 
+    driver = "uvc"
+
     def __init__(self, opener: Callable[[], usb.core.Device | None], frames: FrameSource, *,
                  name: str = "uvc", latency_frames: int = 5) -> None:  # fmt: skip
         self.name, self._opener, self._frames = name, opener, frames

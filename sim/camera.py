@@ -117,6 +117,7 @@ class SimCamera(Camera):
     """
 
     name = "sim"
+    driver = "sim"
 
     def __init__(self, scene: Scene | str | os.PathLike[str] | None = None, *, seed: int = 0,
                  latency_frames: int = 2, realtime: bool = False, scene_scale: float = 1.0,

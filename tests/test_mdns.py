@@ -99,6 +99,24 @@ async def test_goodbye_on_shutdown(tmp_path: Path) -> None:
         await b.wait_for("Removed", "Bye probe", HTTP_TYPE)
 
 
+async def test_txt_model_names_the_camera_once_it_is_open(tmp_path: Path) -> None:
+    """No model configured: the TXT record says the open camera's model and driver (re-announced
+    when the camera opens), never a simulator that is not running."""
+    cfg = service_config(tmp_path, mdns={"enabled": True, "interfaces": LOOPBACK}, probe={"name": "Cam probe"})
+    async with Browser() as b, running_service(cfg) as s:
+        name = await b.wait_for("Added", "Cam probe")
+        deadline = asyncio.get_running_loop().time() + 30
+        while True:
+            info = await b.resolve(SERVICE_TYPE, name)
+            model = (info.properties.get(b"model") or b"").decode()
+            assert model in ("lightprobe", "lightprobe-sim (sim)"), model
+            if model != "lightprobe" or asyncio.get_running_loop().time() > deadline:
+                break
+            await asyncio.sleep(0.3)
+        assert s.state.runner.camera_info is not None
+        assert model == "lightprobe-sim (sim)"
+
+
 async def test_name_conflict_is_resolved_by_renaming() -> None:
     a = Advertiser(MdnsInfo("aaaaaaaaaaaa", "Same name", 8001, interfaces=LOOPBACK))
     b = Advertiser(MdnsInfo("bbbbbbbbbbbb", "Same name", 8002, interfaces=LOOPBACK))

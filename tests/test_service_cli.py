@@ -90,6 +90,9 @@ async def test_serve_notify_token_and_sigterm(tmp_path: Path) -> None:
                 st = await r.json()
             assert st["frames"] > 0
             assert st["camera"]["state"] == "running"
+            assert st["threading_layer"] in ("omp", "tbb")  # never workqueue (lightprobe.device.threads)
+            assert st["camera"]["driver"] == "sim"
+            assert st["probe"]["model"] == "lightprobe-sim (sim)"
             async with c.ws_connect(url + "/api/v1/stream") as ws:
                 await ws.receive(timeout=30)
                 p.send_signal(signal.SIGTERM)
@@ -170,6 +173,12 @@ async def test_serve_auto_without_hardware_stays_up_and_serves_no_lights(tmp_pat
             assert "no camera hardware found" in st["camera"]["error"]
             assert st["camera"]["state"] == "reconnecting"
             assert st["frames"] == 0
+            # no camera is open: nothing says simulator (mDNS and the dashboard read this model)
+            assert "sim" not in st["probe"]["model"], st["probe"]
+            assert st["probe"]["model"] == "lightprobe"
+            assert st["camera"]["model"] is None
+            assert st["camera"]["driver"] is None
+            assert st["threading_layer"] in ("omp", "tbb")
             while st["camera"]["reconnects"] < 2:  # it keeps retrying (a camera may be plugged in)
                 await asyncio.sleep(0.2)
                 async with c.get(url + "/api/v1/status") as r:

@@ -256,12 +256,19 @@ async def _advertise(st: ServiceState, adv: Any) -> None:
             await adv.close()
         return
     st.advertiser = adv
-    name, sampler = st.config.get("probe", "name"), st.config.get("pipeline", "sampler")
-    if (name, sampler) != (adv.info.name, adv.info.sampler):
+    name, sampler, model = st.config.get("probe", "name"), st.config.get("pipeline", "sampler"), st.model()
+    if (name, sampler, model) != (adv.info.name, adv.info.sampler, adv.info.model):
         try:
-            await adv.update(name=name, sampler=sampler)
+            await adv.update(name=name, sampler=sampler, model=model)
         except Exception as e:
             log.warning("mdns: re-announce failed: %s", e)
+
+
+async def _reannounce(adv: Any, model: str) -> None:
+    try:
+        await adv.update(model=model)
+    except Exception as e:
+        log.warning("mdns: re-announce failed: %s", e)
 
 
 async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
@@ -275,14 +282,26 @@ async def _mdns_ctx(app: web.Application) -> AsyncIterator[None]:
     from lightprobe.device.service.mdns import Advertiser, MdnsInfo
 
     info = MdnsInfo(probe_id=st.probe_id, name=cfg.get("probe", "name"), port=app[PORT],
-                    version=st.version, model=cfg.get("probe", "model"),
+                    version=st.version, model=st.model(),
                     sampler=cfg.get("pipeline", "sampler"),
                     interfaces=_mdns_interfaces(list(cfg.get("mdns", "interfaces")), app[HOST]))
     adv = Advertiser(info)
     task = st.mdns_task = asyncio.create_task(_advertise(st, adv), name="lightprobe-mdns-register")
+    updates: set[asyncio.Task[None]] = set()
+
+    def camera_changed(_info: dict[str, str]) -> None:  # the TXT record names the camera now open
+        if st.advertiser is not None and st.model() != st.advertiser.info.model:
+            t = asyncio.get_running_loop().create_task(_reannounce(st.advertiser, st.model()))
+            updates.add(t)
+            t.add_done_callback(updates.discard)
+
+    st.runner.camera_listeners.append(camera_changed)
     try:
         yield
     finally:
+        st.runner.camera_listeners.remove(camera_changed)
+        for t in list(updates):
+            t.cancel()
         if not task.done():
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):

@@ -112,7 +112,7 @@ SCHEMA: dict[str, dict[str, _Spec]] = {
                  lambda v: v == "" or (bool(_NAME_RE.match(v)) and len(v.encode("utf-8")) <= 63)),
         "id": (str, "", "up to 32 characters [A-Za-z0-9_-] (empty = from machine-id)",
                lambda v: re.fullmatch(r"[A-Za-z0-9_-]{0,32}", v) is not None),
-        "model": (str, "lightprobe-sim", "up to 63 printable characters",
+        "model": (str, "", "up to 63 printable characters (empty = the open camera's model and driver)",
                   lambda v: len(v) <= 63 and v.isprintable()),
     },
     "mdns": {

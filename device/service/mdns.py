@@ -173,7 +173,8 @@ class Advertiser:
                 await (await azc.async_unregister_service(si))
         self._registered = []
 
-    async def update(self, *, name: str | None = None, sampler: str | None = None) -> None:
+    async def update(self, *, name: str | None = None, sampler: str | None = None,
+                     model: str | None = None) -> None:
         """Re-announce after a change. A new name re-registers under the new instance name."""
         async with self._lock:
             renamed = name is not None and name != self.info.name
@@ -181,6 +182,8 @@ class Advertiser:
                 self.info.name = name
             if sampler is not None:
                 self.info.sampler = sampler
+            if model is not None:
+                self.info.model = model
             if self._azc is None:
                 return
             if renamed:

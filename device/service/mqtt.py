@@ -78,7 +78,7 @@ class ServiceSource:
         st, cfg = self.st, self.st.config
         s = st.runner.status()
         return {"version": 1, "probe": self.probe_id, "state": "online", "name": cfg.get("probe", "name"),
-                "model": cfg.get("probe", "model"), "sw_version": st.version,
+                "model": st.model(), "sw_version": st.version,
                 "sampler": cfg.get("pipeline", "sampler"), "health": s["health"], "url": self.url,
                 "frames": s["frames"], "fps": s["fps"], "stale": s["stale"], "timestamp": time.time()}
 

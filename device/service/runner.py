@@ -141,6 +141,10 @@ class Runner:
         self.listeners: list[Callable[[LightSet, Any], None]] = []
         self.pipeline: PipelineLike | None = None
         self.camera_state = "starting"
+        # the camera the pipeline runs on once it started ({"model", "driver", "name"}), and who
+        # wants to know when it changes (mDNS, MQTT): never a simulator unless one runs
+        self.camera_info: dict[str, str] | None = None
+        self.camera_listeners: list[Callable[[dict[str, str]], None]] = []
         self.last_error: str | None = None
         self.reconnects = 0
         self.frames = 0
@@ -250,7 +254,26 @@ class Runner:
             self.camera_state = "starting"
             await self.pipeline.start()
             self._started = True
+            self._note_camera(self.pipeline)
         return self.pipeline
+
+    def _note_camera(self, pipeline: Any) -> None:
+        cam = getattr(pipeline, "camera", None)
+        if cam is None:
+            return
+        try:
+            model = str(cam.capabilities.model or "")
+        except Exception:  # not open: its name is all there is
+            model = ""
+        info = {"model": model or str(cam.name), "driver": str(getattr(cam, "driver", "camera")), "name": str(cam.name)}
+        if info == self.camera_info:
+            return
+        self.camera_info = info
+        for listener in list(self.camera_listeners):
+            try:
+                listener(info)
+            except Exception:  # a listener's fault is its own
+                log.exception("camera listener failed")
 
     # ---- the loop ---------------------------------------------------------------------------
     async def _run(self) -> None:
@@ -377,7 +400,8 @@ class Runner:
         pipe_stats = {k: v for k, v in stats.items() if isinstance(v, int | float | str | bool)}
         return {
             "health": health,
-            "camera": {"state": self.camera_state, "error": self.last_error, "reconnects": self.reconnects},
+            "camera": {"state": self.camera_state, "error": self.last_error, "reconnects": self.reconnects,
+                       "model": (self.camera_info or {}).get("model"), "driver": (self.camera_info or {}).get("driver")},
             "stale": self.stale,
             "settling": bool(getattr(self.lights, "settling", False)),
             "frame": int(getattr(r, "frame", 0)) if r is not None else None,

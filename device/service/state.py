@@ -98,6 +98,18 @@ class ServiceState:
     _camera_lock: threading.Lock = field(default_factory=threading.Lock)
     _camera_error: Exception | None = None
 
+    def model(self, config: ServiceConfig | None = None) -> str:
+        """The probe's model as /status, mDNS and MQTT say it: ``[probe] model`` when an
+        installer set one, else the open camera's (its driver after a slash), else
+        ``lightprobe`` (no camera open yet: never a simulator that is not running)."""
+        set_ = str((config or self.config).get("probe", "model"))
+        if set_:
+            return set_
+        info = self.runner.camera_info
+        if info:
+            return f"{info['model']} ({info['driver']})"[:63]
+        return "lightprobe"
+
     def saved_config(self) -> ServiceConfig:
         """The config as saved on disk: the running one plus any pending restart-only values."""
         return self.saved if self.saved is not None else self.config

@@ -132,6 +132,8 @@ class V4L2Camera(Camera):
     mode : the mode to stream at first; default the largest RGB8 mode.
     """
 
+    driver = "v4l2"
+
     def __init__(self, path: str, *, opener: Callable[[], IoctlTransport] | None = None,
                  controls_factory: Callable[[IoctlTransport], ControlBackend] | None = None,
                  buffer_count: int = 4, sensor_latency_frames: int = 3, mode: Mode | None = None) -> None:  # fmt: skip

@@ -23,6 +23,7 @@ from lightprobe.device.service.encode import encode_hdr, encode_jpeg
 from lightprobe.device.service.errors import ApiError
 from lightprobe.device.service.payloads import sg_payload, sh_payload
 from lightprobe.device.service.state import STATE, ServiceState
+from lightprobe.device.threads import loaded_layer
 
 __all__ = ["add_routes"]
 
@@ -91,7 +92,7 @@ async def status(request: web.Request) -> web.Response:
     cfg = st.config
     body = st.runner.status()
     body.update({
-        "probe": {"id": st.probe_id, "name": cfg.get("probe", "name"), "model": cfg.get("probe", "model"),
+        "probe": {"id": st.probe_id, "name": cfg.get("probe", "name"), "model": st.model(),
                   "version": st.version},
         "sampler": cfg.get("pipeline", "sampler"),
         "light_count": cfg.get("pipeline", "light_count"),
@@ -102,6 +103,7 @@ async def status(request: web.Request) -> web.Response:
         "mqtt": st.mqtt.stats() if st.mqtt is not None else None,
         "osc": st.osc.stats() if st.osc is not None else None,
         "pending_restart": sorted(f"{t}.{k}" for t, kv in st.pending.items() for k in kv),
+        "threading_layer": loaded_layer(),  # numba's: omp or tbb (lightprobe.device.threads)
     })
     return web.json_response(body)
 
@@ -262,9 +264,11 @@ async def _apply_config(st: ServiceState, old: Any, new: Any) -> None:
     if st.advertiser is None and st.mdns_task is not None and not st.mdns_task.done():
         with contextlib.suppress(TimeoutError, asyncio.CancelledError):  # still registering
             await asyncio.wait_for(asyncio.shield(st.mdns_task), 5.0)
-    if st.advertiser is not None and (name_changed or old.get("pipeline", "sampler") != new.get("pipeline", "sampler")):
+    if st.advertiser is not None and (name_changed or old.get("pipeline", "sampler") != new.get("pipeline", "sampler")
+                                      or old.get("probe", "model") != new.get("probe", "model")):
         try:
-            await st.advertiser.update(name=new.get("probe", "name"), sampler=new.get("pipeline", "sampler"))
+            await st.advertiser.update(name=new.get("probe", "name"), sampler=new.get("pipeline", "sampler"),
+                                       model=st.model(new))
         except Exception as e:
             log.warning("mdns: re-announce failed: %s", e)
 
