@@ -280,11 +280,11 @@ async def _watch(url: str, seconds: float, q2tree: bool) -> dict[str, Any]:
     return out
 
 
-def start_serve(camera: str, scene: str, state: Path, cfg: Path, env: dict[str, str], stderr: Any
-                 ) -> tuple[subprocess.Popen[str], str]:
-    """``lightprobe serve`` as a user starts it; returns the process and the dashboard URL it
-    printed."""
-    p = subprocess.Popen([sys.executable, "-m", "lightprobe.cli", "serve", "--camera", camera, "--scene", scene,
+def start_serve(camera: str, scene: str, state: Path, cfg: Path, env: dict[str, str], stderr: Any,
+                prefix: tuple[str, ...] = ()) -> tuple[subprocess.Popen[str], str]:
+    """``lightprobe serve`` as a user starts it (after ``prefix``: ``taskset -c 0``); returns
+    the process and the dashboard URL it printed."""
+    p = subprocess.Popen([*prefix, sys.executable, "-m", "lightprobe.cli", "serve", "--camera", camera, "--scene", scene,
                           "--port", "0", "--state-dir", str(state), "--config", str(cfg), "--log-format", "json"],
                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), **env}, stdout=subprocess.PIPE,
                          stderr=stderr, text=True)

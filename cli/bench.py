@@ -27,6 +27,8 @@ BENCHMARKS = {
             "CPU per frame, start times, RSS",
     "replay": "recordings: the recorder's CPU per frame and dropped frames while the service runs at 30 fps; "
               "a recording read back and the pipeline replayed on it as fast as they go",
+    "board": "the service on one pinned core (CPU per set, start, RSS), scaled to Raspberry Pi cores by "
+             "published single-core ratios; the arm64 package under emulation (make deb-check's report)",
     "stability": "a static scene's published energy over 3,600 sensor frames from a cold start: first sets, "
                  "settling, frame-to-frame change, excursion, creep, direction jitter",
 }
@@ -40,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     from lightprobe.bench import (
+        board,
         cluster,
         fleet,
         formats,
@@ -58,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
 
     runners = {"pipeline": pipeline, "hdr": hdr, "samplers": samplers, "service": service, "relight": relight,
                "relight_sg": relight_sg, "room": room, "fleet": fleet, "cluster": cluster, "formats": formats,
-               "live": live, "stability": stability, "replay": replay}
+               "live": live, "stability": stability, "replay": replay,
+               "board": board}
     result = runners[a.name].run(a.out, quick=a.quick)
     print(json.dumps({"machine": machine_info(), **result.get("summary", {})}, indent=2))
     return 0
