@@ -32,6 +32,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 import tomllib
 from pathlib import Path
 
@@ -96,7 +97,8 @@ def stage(arch: str, work: Path) -> Path:
     _write(venv / "pyvenv.cfg", f"home = /usr/bin\ninclude-system-site-packages = false\nversion = {PYVER}\n"
                                 f"executable = /usr/bin/python{PYVER}\n")
     (venv / "bin").mkdir(parents=True, exist_ok=True)
-    os.symlink(f"/usr/bin/python{PYVER}", venv / "bin" / "python3")
+    # relative inside /usr (Debian policy; lintian absolute-symlink-in-top-level-folder)
+    os.symlink(os.path.relpath(f"/usr/bin/python{PYVER}", f"{PREFIX}/bin"), venv / "bin" / "python3")
     os.symlink("python3", venv / "bin" / "python")
     _write(root / "usr/bin/lightprobe",
            f"#!/bin/sh\n# lightprobe (Debian package): the service's own environment in {PREFIX}\n"
@@ -113,12 +115,13 @@ def stage(arch: str, work: Path) -> Path:
            "LIGHTPROBE_CAMERA=auto\n")
     doc = root / "usr/share/doc/lightprobe"
     _write(doc / "README.md", (ROOT / "README.md").read_text())
-    _gzip(doc / "changelog.gz", (ROOT / "CHANGELOG.md").read_bytes())
+    _gzip(doc / "changelog.gz", _debian_changelog(ver).encode())  # a native package's: Debian's format
+    _gzip(doc / "CHANGELOG.md.gz", (ROOT / "CHANGELOG.md").read_bytes())  # the project's own
     _gzip(root / "usr/share/man/man1/lightprobe.1.gz", _manpage(ver).encode())
     _write(root / "usr/share/lintian/overrides/lightprobe", OVERRIDES.replace("@PREFIX@", PREFIX.lstrip("/")))
     _write(doc / "copyright",
            "Format: https://www.debian.org/doc/packaging-manuals/copyright-format/1.0/\n"
-           "Upstream-Name: lightprobe\n\nFiles: *\nCopyright: lightprobe developers\nLicense: Apache-2.0\n"
+           "Upstream-Name: lightprobe\n\nFiles: *\nCopyright: 2026 lightprobe developers\nLicense: Apache-2.0\n"
            " On Debian systems the full text is in /usr/share/common-licenses/Apache-2.0.\n\n"
            f"Files: {PREFIX}/lib/python{PYVER}/site-packages/*\nCopyright: their authors\n"
            "License: various (each package's dist-info holds its license; none is GPL)\n")
@@ -159,6 +162,17 @@ def _manpage(ver: str) -> str:
             ".TP", "/etc/default/lightprobe", "the camera the unit opens (LIGHTPROBE_CAMERA)",
             ".SH SEE ALSO", "/usr/share/doc/lightprobe/README.md"]
     return "\n".join(out) + "\n"
+
+
+def _debian_changelog(ver: str) -> str:
+    """The package's changelog entry, dated by the commit it is built from (reproducible)."""
+    r = subprocess.run(["git", "log", "-1", "--date=format:%a, %d %b %Y %H:%M:%S %z", "--format=%ad %h"], cwd=ROOT, capture_output=True, text=True)
+    date, _, commit = (r.stdout.strip().rpartition(" ") if r.returncode == 0 and r.stdout.strip()
+                       else (time.strftime("%a, %d %b %Y %H:%M:%S +0000", time.gmtime()), "", "unknown"))
+    return (f"lightprobe ({ver}) unstable; urgency=medium\n\n"
+            f"  * Built from the repository at commit {commit}; the project's changes are in\n"
+            "    /usr/share/doc/lightprobe/CHANGELOG.md.gz.\n\n"
+            f" -- lightprobe developers <maintainers@lightprobe.dev>  {date}\n")
 
 
 def _installed_kib(root: Path) -> int:
