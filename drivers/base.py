@@ -31,9 +31,11 @@ import math
 import time
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import TYPE_CHECKING, Self
+from typing import TYPE_CHECKING, Self, TypeVar
 
 import numpy as np
+
+_T = TypeVar("_T")
 
 if TYPE_CHECKING:
     from lightprobe.core.calibration import Calibration
@@ -306,6 +308,12 @@ class Camera(abc.ABC):
         return False
 
     # -- helpers shared by backends --
+    def _opened(self, value: _T | None) -> _T:
+        """``value`` (a property only an open camera has), or CameraUnavailable naming the camera."""
+        if value is None:
+            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
+        return value
+
     def check_controls(self, controls: Controls) -> None:
         """Raise ControlOutOfRange for values outside the capabilities."""
         caps = self.capabilities

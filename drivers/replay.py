@@ -110,9 +110,7 @@ class ReplayCamera(Camera):
 
     @property
     def reader(self) -> RecordingReader:
-        if self._reader is None:
-            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
-        return self._reader
+        return self._opened(self._reader)
 
     @property
     def kind(self) -> str:
@@ -120,15 +118,11 @@ class ReplayCamera(Camera):
 
     @property
     def capabilities(self) -> Capabilities:
-        if self._caps is None:
-            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
-        return self._caps
+        return self._opened(self._caps)
 
     @property
     def mode(self) -> Mode:
-        if self._mode is None:
-            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
-        return self._mode
+        return self._opened(self._mode)
 
     async def set_mode(self, mode: Mode) -> None:
         if mode not in self.capabilities.modes:

@@ -376,9 +376,7 @@ class UvcCamera(Camera):
 
     @property
     def capabilities(self) -> Capabilities:
-        if self._caps is None:
-            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
-        return self._caps
+        return self._opened(self._caps)
 
     @property
     def mode(self) -> Mode:

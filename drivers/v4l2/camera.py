@@ -161,15 +161,11 @@ class V4L2Camera(Camera):
     # ---- Camera protocol ------------------------------------------------------------------------
     @property
     def capabilities(self) -> Capabilities:
-        if self._caps is None:
-            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
-        return self._caps
+        return self._opened(self._caps)
 
     @property
     def mode(self) -> Mode:
-        if self._mode is None:
-            raise CameraUnavailable(f"{self.name} is not open", device=self.name)
-        return self._mode
+        return self._opened(self._mode)
 
     async def open(self) -> None:
         if self._t is not None:
