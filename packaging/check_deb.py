@@ -5,7 +5,9 @@ with ``mmdebstrap`` (``python3`` and what the package depends on), the package i
 with ``dpkg -i`` (its postinst compiles the numba kernels: an abort there fails the check), then
 the unit's ``ExecStart`` line run in the root with the unit's environment, on ``--camera
 v4l2-fake`` and on ``--camera sim``, until first lights and ``--frames`` frames; the published
-lights are read over HTTP, the service stopped with SIGTERM (exit 0 asserted). arm64 runs under
+lights are read over HTTP, the service stopped with SIGTERM (exit 0 asserted). Natively, the
+package's life follows (:func:`lifecycle`): upgraded over itself, removed, purged, with the
+state and an edited conffile kept until the purge. arm64 runs under
 QEMU user-mode emulation: binfmt_misc with ``qemu-aarch64`` (Debian's ``qemu-user-static``,
 registered with the ``F`` flag, so it runs inside the root); when the machine cannot register it,
 the check says so and skips arm64 (exit 0 with ``--allow-skip``, else 77).
@@ -107,6 +109,48 @@ def install(root: Path, deb: Path) -> float:
         raise RuntimeError(f"dpkg -i {deb.name} failed (exit {r.returncode})")
     (root / "tmp" / deb.name).unlink()
     return took
+
+
+def lifecycle(root: Path, deb: Path) -> dict[str, Any]:
+    """Upgrade, removal and purge, as an installer meets them: the unit's state (token, config,
+    calibrations in ``/var/lib/private/lightprobe``) and an edited ``/etc/default/lightprobe``
+    survive an upgrade (the package installed over itself) and a removal; the removal leaves
+    nothing of the package's own files (the compiled caches included); a purge deletes the state."""
+    state = root / "var/lib/private/lightprobe"
+    marks = {"token": "t0ken\n", "config.toml": "[probe]\nname = \"Hall\"\n",
+             "calibration/history/0001.json": "{}\n"}
+    for rel, text in marks.items():
+        (state / rel).parent.mkdir(parents=True, exist_ok=True)
+        (state / rel).write_text(text)
+    default = root / "etc/default/lightprobe"
+    default.write_text(default.read_text().replace("LIGHTPROBE_CAMERA=auto", "LIGHTPROBE_CAMERA=v4l2:/dev/video2"))
+
+    def dpkg(*args: str) -> None:
+        r = subprocess.run(["chroot", str(root), "dpkg", "--force-confold", *args], capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"dpkg {' '.join(args)} failed: {r.stderr[-3000:]}")
+
+    def kept() -> bool:
+        return all((state / rel).is_file() and (state / rel).read_text() == text for rel, text in marks.items())
+
+    out: dict[str, Any] = {}
+    shutil.copy(deb, root / "tmp" / deb.name)
+    t0 = time.monotonic()
+    dpkg("-i", f"/tmp/{deb.name}")  # an upgrade: configure with the old version as $2
+    out["upgrade_s"] = round(time.monotonic() - t0, 1)
+    out["upgrade_keeps_state"] = kept()
+    out["upgrade_keeps_edited_conffile"] = "LIGHTPROBE_CAMERA=v4l2:/dev/video2" in default.read_text()
+    dpkg("-r", "lightprobe")
+    out["remove_keeps_state"] = kept()
+    leftover = sorted(str(p.relative_to(root)) for p in (root / "usr/lib/lightprobe").rglob("*")) \
+        if (root / "usr/lib/lightprobe").exists() else []
+    out["remove_leaves"] = leftover[:5]
+    dpkg("-P", "lightprobe")
+    out["purge_deletes_state"] = not state.exists() and not default.exists()
+    (root / "tmp" / deb.name).unlink()
+    out["ok"] = bool(out["upgrade_keeps_state"] and out["upgrade_keeps_edited_conffile"] and out["remove_keeps_state"]
+                     and not leftover and out["purge_deletes_state"])
+    return out
 
 
 def unit_command(root: Path, camera: str, port: int) -> tuple[list[str], dict[str, str]]:
@@ -252,6 +296,10 @@ def main(argv: list[str] | None = None) -> int:
                 entry["install_s"] = round(install(root, debs[-1]), 1)
                 log(f"{arch}: installed in {entry['install_s']} s (postinst compiled the kernels)")
                 entry["services"] = [run_service(root, cam, a.frames, 1800.0) for cam in cameras]
+                if not entry["emulated"]:  # a reinstall compiles the kernels again: natively only
+                    entry["lifecycle"] = lifecycle(root, debs[-1])
+                    log(f"{arch}: upgrade, remove, purge: {entry['lifecycle']}")
+                    failed = failed or not entry["lifecycle"]["ok"]
         except Exception as e:  # the report says which step
             entry["error"] = f"{type(e).__name__}: {e}"
             log(f"{arch}: FAILED: {entry['error']}")
