@@ -104,9 +104,9 @@ def stage(arch: str, work: Path) -> Path:
            f"#!/bin/sh\n# lightprobe (Debian package): the service's own environment in {PREFIX}\n"
            f"exec {PREFIX}/bin/python3 -m lightprobe.cli \"$@\"\n", 0o755)
     unit = (ROOT / "systemd/lightprobe.service").read_text()
-    unit = unit.replace("# lightprobe probe service (installed as /etc/systemd/system/lightprobe.service).\n"
-                        "# `lightprobe` must be on systemd's PATH (e.g. /usr/local/bin/lightprobe -> the venv's script).\n",
-                        "# lightprobe probe service (the Debian package's unit; override with systemctl edit).\n")
+    _head, sep, body = unit.partition("# Token:")  # the repository's install notes, not the package's
+    if sep:
+        unit = "# lightprobe probe service (the Debian package's unit; override with systemctl edit).\n" + sep + body
     _write(root / "lib/systemd/system/lightprobe.service", unit)
     _write(root / "etc/default/lightprobe",
            "# lightprobe service options (read by lightprobe.service; kept across upgrades)\n"
