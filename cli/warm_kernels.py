@@ -125,6 +125,14 @@ def main(argv: list[str] | None = None) -> int:
         print("lightprobe warm-kernels: unset NUMBA_CACHE_DIR: the kernels belong beside the sources",
               file=sys.stderr)
         return 2
+    from lightprobe.device.threads import ThreadingLayerError, require_threadsafe, select
+
+    select()
+    try:  # an install without a thread-safe layer fails here, saying why, not with an abort later
+        require_threadsafe()  # (and compiles the check's own kernel, which serve runs at start)
+    except ThreadingLayerError as e:
+        print(f"lightprobe warm-kernels: error: {e}", file=sys.stderr)
+        return 2
     t0 = time.monotonic()
     res = asyncio.run(_exercise(a.frames))
     n = len(shipped_kernel_dirs())

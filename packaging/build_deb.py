@@ -141,15 +141,9 @@ def _gzip(path: Path, data: bytes) -> None:
 
 def _manpage(ver: str) -> str:
     """lightprobe(1): the commands, from the CLI's own table."""
-    sys.path.insert(0, str(ROOT / "build" / "mypy"))
-    try:
-        from lightprobe.cli import COMMANDS
+    from lightprobe.cli import COMMANDS  # the build runs in the project's environment
 
-        rows = [(name, help_) for name, (_m, help_) in COMMANDS.items()]
-    except Exception:  # building without the checkout's namespace links: the names only
-        rows = []
-    finally:
-        sys.path.pop(0)
+    rows = [(name, help_) for name, (_m, help_) in COMMANDS.items()]
     out = [f'.TH LIGHTPROBE 1 "" "lightprobe {ver}" "User Commands"', ".SH NAME",
            "lightprobe \\- live HDR light probe: service, calibration and tools",
            ".SH SYNOPSIS", ".B lightprobe", "\\fICOMMAND\\fR [\\fIOPTIONS\\fR]", ".SH DESCRIPTION",
